@@ -1,0 +1,614 @@
+//! The wgpu backend: headless device creation, adapter choice, typed storage buffers, a cached
+//! kernel (compute pipeline) launcher with explicit bind-group layouts, batched dispatch, and
+//! GPU timing through timestamp queries where the adapter supports them.
+//!
+//! Kernel binding convention (all WGSL kernels follow it, see ARCHITECTURE.md):
+//! `@group(0) @binding(0)` is a `var<uniform>` params struct when the kernel has one; storage
+//! buffers follow at bindings 1, 2, ... in the order given in [`KernelSpec::storage`].
+//! Large 1-D launches use [`groups_1d`], which spreads workgroups over x and y; kernels then
+//! compute the linear index with `linear_index(gid, nwg, WG)` from `shaders/lib/index.wgsl`.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+
+use wgpu::util::DeviceExt;
+
+use super::{BackendError, NO_ADAPTER_HINT};
+
+/// Options for creating a [`GpuContext`].
+#[derive(Clone, Debug, Default)]
+pub struct GpuOptions {
+    /// Force an adapter: its index in [`list_adapters`] or a case-insensitive name substring.
+    pub adapter: Option<String>,
+    /// Accept software adapters (lavapipe/llvmpipe, WARP). Off for `--backend auto`.
+    pub allow_software: bool,
+    /// Request wgpu's validation layer (tests).
+    pub validation: bool,
+}
+
+/// A GPU adapter as seen by [`list_adapters`].
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct AdapterSummary {
+    pub index: usize,
+    pub name: String,
+    pub backend: String,
+    pub device_type: String,
+    pub driver: String,
+    pub software: bool,
+}
+
+fn is_software(info: &wgpu::AdapterInfo) -> bool {
+    let name = info.name.to_lowercase();
+    info.device_type == wgpu::DeviceType::Cpu
+        || name.contains("llvmpipe")
+        || name.contains("lavapipe")
+        || name.contains("swiftshader")
+}
+
+fn rank(info: &wgpu::AdapterInfo) -> u32 {
+    match info.device_type {
+        wgpu::DeviceType::DiscreteGpu => 0,
+        wgpu::DeviceType::IntegratedGpu => 1,
+        wgpu::DeviceType::VirtualGpu => 2,
+        wgpu::DeviceType::Other => 3,
+        wgpu::DeviceType::Cpu => 4,
+    }
+}
+
+fn instance(validation: bool) -> wgpu::Instance {
+    let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+    desc.backends = wgpu::Backends::VULKAN | wgpu::Backends::METAL | wgpu::Backends::DX12;
+    desc.flags = if validation { wgpu::InstanceFlags::debugging() } else { wgpu::InstanceFlags::empty() };
+    wgpu::Instance::new(desc)
+}
+
+fn enumerate(inst: &wgpu::Instance) -> Vec<wgpu::Adapter> {
+    let mut adapters = pollster::block_on(inst.enumerate_adapters(wgpu::Backends::all()));
+    adapters.sort_by_key(|a| rank(&a.get_info()));
+    adapters
+}
+
+/// Every adapter wgpu can see, best first (discrete, integrated, virtual, other, software).
+pub fn list_adapters() -> Vec<AdapterSummary> {
+    enumerate(&instance(false))
+        .iter()
+        .enumerate()
+        .map(|(index, a)| {
+            let i = a.get_info();
+            AdapterSummary {
+                index,
+                software: is_software(&i),
+                name: i.name,
+                backend: format!("{:?}", i.backend),
+                device_type: format!("{:?}", i.device_type),
+                driver: format!("{} {}", i.driver, i.driver_info),
+            }
+        })
+        .collect()
+}
+
+/// A storage buffer of 4-byte elements (f32, u32 or Pod structs of them) with its element count.
+#[derive(Debug)]
+pub struct GpuBuffer {
+    pub buffer: wgpu::Buffer,
+    pub len: usize,
+}
+
+/// How a kernel binds a storage buffer.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Access {
+    Read,
+    ReadWrite,
+}
+
+/// A kernel's binding layout: an optional uniform params block at binding 0, then storage
+/// buffers at bindings 1.. in order.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub struct KernelSpec {
+    pub uniform: bool,
+    pub storage: Vec<Access>,
+}
+
+impl KernelSpec {
+    pub fn new(uniform: bool, storage: &[Access]) -> Self {
+        Self { uniform, storage: storage.to_vec() }
+    }
+}
+
+/// A compiled compute pipeline with its layout.
+pub struct Kernel {
+    pub label: String,
+    pub pipeline: wgpu::ComputePipeline,
+    pub layout: wgpu::BindGroupLayout,
+    pub spec: KernelSpec,
+}
+
+/// One bound storage resource of a dispatch.
+pub enum Bind<'a> {
+    Buffer(&'a GpuBuffer),
+    Raw(&'a wgpu::Buffer),
+}
+
+impl<'a> From<&'a GpuBuffer> for Bind<'a> {
+    fn from(b: &'a GpuBuffer) -> Self {
+        Bind::Buffer(b)
+    }
+}
+
+/// The headless wgpu device and everything kernels share.
+pub struct GpuContext {
+    pub adapter: wgpu::Adapter,
+    pub device: wgpu::Device,
+    pub queue: wgpu::Queue,
+    pub info: wgpu::AdapterInfo,
+    pub limits: wgpu::Limits,
+    pub features: wgpu::Features,
+    kernels: Mutex<HashMap<String, Arc<Kernel>>>,
+}
+
+/// Workgroup counts for `n` invocations of a 1-D kernel with workgroup size `wg`, spread over x
+/// and y when x would exceed the 65535 limit.
+pub fn groups_1d(n: usize, wg: u32) -> [u32; 3] {
+    let groups = n.div_ceil(wg as usize).max(1);
+    const MAX: usize = 65535;
+    if groups <= MAX {
+        [groups as u32, 1, 1]
+    } else {
+        let y = groups.div_ceil(MAX);
+        let x = groups.div_ceil(y);
+        [x as u32, y as u32, 1]
+    }
+}
+
+impl GpuContext {
+    /// Create a headless device. Chooses the best adapter (or the forced one), requests the
+    /// adapter's own limits (lavapipe: 32 KiB workgroup memory) and timestamp queries if present.
+    pub fn new(opts: &GpuOptions) -> Result<Self, BackendError> {
+        let inst = instance(opts.validation);
+        let adapters = enumerate(&inst);
+        if adapters.is_empty() {
+            return Err(BackendError::NoAdapter(NO_ADAPTER_HINT.into()));
+        }
+        let chosen = match &opts.adapter {
+            Some(want) => {
+                let by_index = want.parse::<usize>().ok().and_then(|i| adapters.get(i));
+                let by_name = || adapters.iter().find(|a| a.get_info().name.to_lowercase().contains(&want.to_lowercase()));
+                by_index.or_else(by_name).ok_or_else(|| {
+                    let names: Vec<String> =
+                        adapters.iter().enumerate().map(|(i, a)| format!("{i}: {}", a.get_info().name)).collect();
+                    BackendError::NoAdapter(format!("no adapter matches {want:?}; available: {}", names.join(", ")))
+                })?
+            }
+            None => {
+                let best = &adapters[0];
+                if is_software(&best.get_info()) && !opts.allow_software {
+                    return Err(BackendError::NoAdapter(format!(
+                        "only a software adapter ({}) is available; it is slower than the cpu backend",
+                        best.get_info().name
+                    )));
+                }
+                best
+            }
+        };
+        let adapter = chosen.clone();
+        let info = adapter.get_info();
+        let limits = adapter.limits();
+        let wanted = wgpu::Features::TIMESTAMP_QUERY | wgpu::Features::TIMESTAMP_QUERY_INSIDE_ENCODERS;
+        let features = adapter.features() & wanted;
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("pii-bake"),
+            required_features: features,
+            required_limits: limits.clone(),
+            memory_hints: wgpu::MemoryHints::Performance,
+            ..Default::default()
+        }))
+        .map_err(|e| BackendError::Device(format!("{} ({:?}): {e}", info.name, info.backend)))?;
+        // Errors are captured per operation with error scopes; anything that escapes is logged,
+        // never a panic.
+        device.on_uncaptured_error(Arc::new(|e| tracing::error!("uncaptured wgpu error: {e}")));
+        tracing::debug!("wgpu adapter: {} ({:?}, {:?})", info.name, info.backend, info.device_type);
+        Ok(Self { adapter, device, queue, info, limits, features, kernels: Mutex::new(HashMap::new()) })
+    }
+
+    pub fn is_software(&self) -> bool {
+        is_software(&self.info)
+    }
+
+    pub fn supports_timestamps(&self) -> bool {
+        self.features.contains(wgpu::Features::TIMESTAMP_QUERY)
+    }
+
+    // ---- buffers -------------------------------------------------------------------------
+
+    fn storage_usage() -> wgpu::BufferUsages {
+        wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST
+    }
+
+    /// Upload 4-byte elements (f32, u32, i32 or Pod structs of them) as a storage buffer.
+    pub fn upload<T: bytemuck::Pod>(&self, label: &str, data: &[T]) -> GpuBuffer {
+        let bytes: &[u8] = bytemuck::cast_slice(data);
+        // wgpu rejects zero-sized bindings: keep at least one element.
+        let padded = [0u8; 4];
+        let contents = if bytes.is_empty() { &padded[..] } else { bytes };
+        let buffer = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some(label),
+            contents,
+            usage: Self::storage_usage(),
+        });
+        GpuBuffer { buffer, len: bytes.len() / 4 }
+    }
+
+    pub fn upload_f32(&self, label: &str, data: &[f32]) -> GpuBuffer {
+        self.upload(label, data)
+    }
+
+    pub fn upload_u32(&self, label: &str, data: &[u32]) -> GpuBuffer {
+        self.upload(label, data)
+    }
+
+    /// A zero-filled buffer of `len` 4-byte elements.
+    pub fn zeros_f32(&self, label: &str, len: usize) -> GpuBuffer {
+        let buffer = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some(label),
+            size: (len.max(1) * 4) as u64,
+            usage: Self::storage_usage(),
+            mapped_at_creation: false,
+        });
+        GpuBuffer { buffer, len }
+    }
+
+    /// Overwrite a buffer's contents from the host.
+    pub fn write<T: bytemuck::Pod>(&self, dst: &GpuBuffer, data: &[T]) -> Result<(), BackendError> {
+        let bytes: &[u8] = bytemuck::cast_slice(data);
+        if bytes.len() != dst.len * 4 {
+            return Err(BackendError::Shape(format!(
+                "write of {} bytes into a buffer of {} elements",
+                bytes.len(),
+                dst.len
+            )));
+        }
+        if !bytes.is_empty() {
+            self.queue.write_buffer(&dst.buffer, 0, bytes);
+        }
+        Ok(())
+    }
+
+    /// Read a buffer back to the host (blocks until the GPU is done with it).
+    pub fn read<T: bytemuck::Pod>(&self, src: &GpuBuffer) -> Result<Vec<T>, BackendError> {
+        let size = (src.len * 4) as u64;
+        if size == 0 {
+            return Ok(Vec::new());
+        }
+        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("readback"),
+            size,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
+        enc.copy_buffer_to_buffer(&src.buffer, 0, &staging, 0, size);
+        self.queue.submit([enc.finish()]);
+        let slice = staging.slice(..);
+        let (tx, rx) = std::sync::mpsc::channel();
+        slice.map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
+        });
+        self.wait_idle()?;
+        rx.recv()
+            .map_err(|e| BackendError::Map(e.to_string()))?
+            .map_err(|e| BackendError::Map(e.to_string()))?;
+        let out = {
+            let view = slice.get_mapped_range().map_err(|e| BackendError::Map(e.to_string()))?;
+            bytemuck::cast_slice::<u8, T>(&view).to_vec()
+        };
+        staging.unmap();
+        Ok(out)
+    }
+
+    pub fn read_f32(&self, src: &GpuBuffer) -> Result<Vec<f32>, BackendError> {
+        self.read(src)
+    }
+
+    pub fn read_u32(&self, src: &GpuBuffer) -> Result<Vec<u32>, BackendError> {
+        self.read(src)
+    }
+
+    /// Block until every submitted command buffer has finished.
+    pub fn wait_idle(&self) -> Result<(), BackendError> {
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map(|_| ())
+            .map_err(|e| BackendError::Device(format!("poll failed: {e}")))
+    }
+
+    // ---- kernels -------------------------------------------------------------------------
+
+    /// Compile (once, then cached by `label` + `entry`) a compute kernel from WGSL source.
+    /// Shader errors come back as [`BackendError::Shader`], never a panic.
+    pub fn kernel(&self, label: &str, source: &str, entry: &str, spec: &KernelSpec) -> Result<Arc<Kernel>, BackendError> {
+        let key = format!("{label}::{entry}");
+        if let Some(k) = self.kernels.lock().expect("kernel cache poisoned").get(&key) {
+            return Ok(k.clone());
+        }
+        // Validate with naga first: a readable error with source spans instead of a device error.
+        validate_wgsl(label, source)?;
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let module = self.device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some(label),
+            source: wgpu::ShaderSource::Wgsl(source.into()),
+        });
+        let mut entries = Vec::new();
+        if spec.uniform {
+            entries.push(wgpu::BindGroupLayoutEntry {
+                binding: 0,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Uniform,
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            });
+        }
+        for (i, access) in spec.storage.iter().enumerate() {
+            entries.push(wgpu::BindGroupLayoutEntry {
+                binding: i as u32 + 1,
+                visibility: wgpu::ShaderStages::COMPUTE,
+                ty: wgpu::BindingType::Buffer {
+                    ty: wgpu::BufferBindingType::Storage { read_only: *access == Access::Read },
+                    has_dynamic_offset: false,
+                    min_binding_size: None,
+                },
+                count: None,
+            });
+        }
+        let layout =
+            self.device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor { label: Some(label), entries: &entries });
+        let pl = self.device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some(label),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let pipeline = self.device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(&key),
+            layout: Some(&pl),
+            module: &module,
+            entry_point: Some(entry),
+            compilation_options: Default::default(),
+            cache: None,
+        });
+        if let Some(err) = pollster::block_on(scope.pop()) {
+            return Err(BackendError::Shader { label: key, message: err.to_string() });
+        }
+        let k = Arc::new(Kernel { label: key.clone(), pipeline, layout, spec: spec.clone() });
+        self.kernels.lock().expect("kernel cache poisoned").insert(key, k.clone());
+        Ok(k)
+    }
+
+    /// Start recording a batch of dispatches into one command buffer.
+    pub fn batch(&self, label: &str) -> Batch<'_> {
+        Batch {
+            ctx: self,
+            encoder: self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) }),
+            label: label.to_string(),
+        }
+    }
+
+    /// Record, submit and wait for one dispatch. Validation errors come back as errors.
+    pub fn dispatch(
+        &self,
+        kernel: &Kernel,
+        uniform: Option<&[u8]>,
+        storage: &[Bind<'_>],
+        groups: [u32; 3],
+    ) -> Result<(), BackendError> {
+        let mut b = self.batch(&kernel.label);
+        b.dispatch(kernel, uniform, storage, groups)?;
+        b.submit()
+    }
+
+    /// Time one dispatch on the GPU with timestamp queries: seconds, or `None` when the adapter
+    /// has no timestamp support (the dispatch still runs).
+    pub fn dispatch_timed(
+        &self,
+        kernel: &Kernel,
+        uniform: Option<&[u8]>,
+        storage: &[Bind<'_>],
+        groups: [u32; 3],
+    ) -> Result<Option<f64>, BackendError> {
+        if !self.supports_timestamps() {
+            self.dispatch(kernel, uniform, storage, groups)?;
+            return Ok(None);
+        }
+        let qs = self.device.create_query_set(&wgpu::QuerySetDescriptor {
+            label: Some("timing"),
+            ty: wgpu::QueryType::Timestamp,
+            count: 2,
+        });
+        let resolve = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("timing-resolve"),
+            size: 16,
+            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::STORAGE,
+            mapped_at_creation: false,
+        });
+        let mut b = self.batch(&kernel.label);
+        b.dispatch_inner(kernel, uniform, storage, groups, Some(&qs))?;
+        b.encoder.resolve_query_set(&qs, 0..2, &resolve, 0);
+        b.submit()?;
+        let ticks: Vec<u32> = self.read(&GpuBuffer { buffer: resolve, len: 4 })?;
+        let t0 = ticks[0] as u64 | ((ticks[1] as u64) << 32);
+        let t1 = ticks[2] as u64 | ((ticks[3] as u64) << 32);
+        let period_ns = self.queue.get_timestamp_period() as f64;
+        Ok(Some(t1.saturating_sub(t0) as f64 * period_ns * 1e-9))
+    }
+}
+
+/// A batch of dispatches recorded into one command encoder and submitted together.
+pub struct Batch<'a> {
+    ctx: &'a GpuContext,
+    encoder: wgpu::CommandEncoder,
+    label: String,
+}
+
+impl Batch<'_> {
+    /// Record one dispatch. Checks the bindings against the kernel's spec.
+    pub fn dispatch(
+        &mut self,
+        kernel: &Kernel,
+        uniform: Option<&[u8]>,
+        storage: &[Bind<'_>],
+        groups: [u32; 3],
+    ) -> Result<(), BackendError> {
+        self.dispatch_inner(kernel, uniform, storage, groups, None)
+    }
+
+    fn dispatch_inner(
+        &mut self,
+        kernel: &Kernel,
+        uniform: Option<&[u8]>,
+        storage: &[Bind<'_>],
+        groups: [u32; 3],
+        timing: Option<&wgpu::QuerySet>,
+    ) -> Result<(), BackendError> {
+        let ctx = self.ctx;
+        if uniform.is_some() != kernel.spec.uniform || storage.len() != kernel.spec.storage.len() {
+            return Err(BackendError::Shape(format!(
+                "{}: expected {} uniform and {} storage bindings, got {} and {}",
+                kernel.label,
+                kernel.spec.uniform as u8,
+                kernel.spec.storage.len(),
+                uniform.is_some() as u8,
+                storage.len()
+            )));
+        }
+        let max = ctx.limits.max_compute_workgroups_per_dimension;
+        if groups.iter().any(|&g| g > max) {
+            return Err(BackendError::Shape(format!("{}: workgroup count {groups:?} exceeds the limit {max}", kernel.label)));
+        }
+        let ubuf = uniform.map(|u| {
+            // Uniform blocks are padded to 16 bytes.
+            let mut bytes = u.to_vec();
+            bytes.resize(bytes.len().div_ceil(16).max(1) * 16, 0);
+            ctx.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("params"),
+                contents: &bytes,
+                usage: wgpu::BufferUsages::UNIFORM,
+            })
+        });
+        let mut entries = Vec::new();
+        if let Some(u) = &ubuf {
+            entries.push(wgpu::BindGroupEntry { binding: 0, resource: u.as_entire_binding() });
+        }
+        for (i, b) in storage.iter().enumerate() {
+            let buf = match b {
+                Bind::Buffer(g) => &g.buffer,
+                Bind::Raw(r) => *r,
+            };
+            entries.push(wgpu::BindGroupEntry { binding: i as u32 + 1, resource: buf.as_entire_binding() });
+        }
+        let scope = ctx.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        let bg = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some(&kernel.label),
+            layout: &kernel.layout,
+            entries: &entries,
+        });
+        {
+            let tw = timing.map(|qs| wgpu::ComputePassTimestampWrites {
+                query_set: qs,
+                beginning_of_pass_write_index: Some(0),
+                end_of_pass_write_index: Some(1),
+            });
+            let mut pass =
+                self.encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(&kernel.label), timestamp_writes: tw });
+            pass.set_pipeline(&kernel.pipeline);
+            pass.set_bind_group(0, &bg, &[]);
+            pass.dispatch_workgroups(groups[0], groups[1], groups[2]);
+        }
+        if let Some(err) = pollster::block_on(scope.pop()) {
+            return Err(BackendError::Validation { label: kernel.label.clone(), message: err.to_string() });
+        }
+        Ok(())
+    }
+
+    /// Copy `src` into `dst` (same length) as part of the batch.
+    pub fn copy(&mut self, src: &GpuBuffer, dst: &GpuBuffer) -> Result<(), BackendError> {
+        if src.len != dst.len {
+            return Err(BackendError::Shape(format!("copy of {} elements into {}", src.len, dst.len)));
+        }
+        if src.len > 0 {
+            self.encoder.copy_buffer_to_buffer(&src.buffer, 0, &dst.buffer, 0, (src.len * 4) as u64);
+        }
+        Ok(())
+    }
+
+    /// Submit the batch and wait for it to finish.
+    pub fn submit(self) -> Result<(), BackendError> {
+        let scope = self.ctx.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        self.ctx.queue.submit([self.encoder.finish()]);
+        if let Some(err) = pollster::block_on(scope.pop()) {
+            return Err(BackendError::Validation { label: self.label, message: err.to_string() });
+        }
+        self.ctx.wait_idle()
+    }
+
+    /// Submit without waiting (benchmarks queue several batches, then [`GpuContext::wait_idle`]).
+    pub fn submit_nowait(self) {
+        self.ctx.queue.submit([self.encoder.finish()]);
+    }
+}
+
+/// Parse and validate WGSL with naga (no device needed). Used at kernel creation and by the
+/// CPU-only shader validation test.
+pub fn validate_wgsl(label: &str, source: &str) -> Result<(), BackendError> {
+    let module = naga::front::wgsl::parse_str(source)
+        .map_err(|e| BackendError::Shader { label: label.into(), message: e.emit_to_string(source) })?;
+    naga::valid::Validator::new(naga::valid::ValidationFlags::all(), naga::valid::Capabilities::all())
+        .validate(&module)
+        .map_err(|e| BackendError::Shader { label: label.into(), message: e.emit_to_string(source) })?;
+    Ok(())
+}
+
+/// WGSL sources. Each kernel family's file gets the shared library (`shaders/lib/`) prepended by
+/// [`shaders::with_lib`]: the library is plain WGSL declarations, so there is no import syntax
+/// and the resolver is this one concatenation.
+pub mod shaders {
+    pub const LIB: &str = concat!(
+        include_str!("../../../shaders/lib/index.wgsl"),
+        "\n",
+        include_str!("../../../shaders/lib/math.wgsl"),
+        "\n"
+    );
+
+    /// A kernel family's source with the shared library prepended.
+    pub fn with_lib(family: &str) -> String {
+        format!("{LIB}\n{family}")
+    }
+
+    pub const UTIL: &str = include_str!("../../../shaders/util.wgsl");
+}
+
+/// Elementwise helpers (axpy) used by training; they also prove the launcher in tests.
+pub mod util_kernels {
+    use super::*;
+
+    /// Mirrors `AxpyParams` in `shaders/util.wgsl`.
+    #[repr(C)]
+    #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+    pub struct AxpyParams {
+        pub n: u32,
+        pub a: f32,
+        pub _pad: [u32; 2],
+    }
+    const _: () = assert!(std::mem::size_of::<AxpyParams>() == 16);
+
+    /// y ← a·x + y on the GPU.
+    pub fn axpy(ctx: &GpuContext, a: f32, x: &GpuBuffer, y: &GpuBuffer) -> Result<(), BackendError> {
+        if x.len != y.len {
+            return Err(BackendError::Shape(format!("axpy: x has {} elements, y has {}", x.len, y.len)));
+        }
+        let src = shaders::with_lib(shaders::UTIL);
+        let k = ctx.kernel("util", &src, "axpy", &KernelSpec::new(true, &[Access::Read, Access::ReadWrite]))?;
+        let p = AxpyParams { n: x.len as u32, a, _pad: [0; 2] };
+        ctx.dispatch(&k, Some(bytemuck::bytes_of(&p)), &[x.into(), y.into()], groups_1d(x.len, 256))
+    }
+}

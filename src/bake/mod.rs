@@ -1,0 +1,1 @@
+//! UV-space rasterisation and texture baking.

@@ -1,0 +1,183 @@
+//! The command line: clap definitions, global options, logging, exit codes.
+//! Each subcommand's arguments and `run` live in the module that owns the work
+//! (`scene::cli`, `sg::cli`, `export::cli`, ...); this file only wires them.
+
+use std::io::Write;
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+use crate::backend::{Backend, BackendChoice};
+
+pub mod devices;
+
+#[derive(Debug, Parser)]
+#[command(name = "pii-bake", version, about = "Posed photos -> relightable production asset (glTF, USD, HDR environment)")]
+pub struct Cli {
+    #[command(flatten)]
+    pub global: GlobalArgs,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct GlobalArgs {
+    /// Compute backend: auto (a real GPU if present, else cpu), cpu, or wgpu (any adapter, lavapipe included).
+    #[arg(long, global = true, value_enum, default_value_t = BackendChoice::Auto, env = "PII_BACKEND")]
+    pub backend: BackendChoice,
+    /// Force a GPU adapter by index or name substring (see `pii-bake devices`).
+    #[arg(long, global = true, env = "PII_ADAPTER")]
+    pub adapter: Option<String>,
+    /// Write JSON Lines (objects with a `type` field) to stdout for pipelines.
+    #[arg(long, global = true)]
+    pub json: bool,
+    /// More log output (-v info, -vv debug, -vvv trace). RUST_LOG overrides.
+    #[arg(short, long, global = true, action = clap::ArgAction::Count)]
+    pub verbose: u8,
+    /// Only errors on stderr.
+    #[arg(short, long, global = true)]
+    pub quiet: bool,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// List GPU adapters and the backend `auto` would pick.
+    Devices,
+    /// Read a scene and print what was found (format, views, intrinsics, normalisation).
+    Info(crate::scene::cli::InfoArgs),
+    /// Metrics against ground truth (PSNR/SSIM, albedo, roughness, environment, Chamfer).
+    Eval(crate::eval::cli::EvalArgs),
+    /// Fit K spherical Gaussians to an HDR latlong environment map.
+    FitEnv(crate::sg::cli::FitEnvArgs),
+    /// Export an asset (mesh, UVs, baked textures, glTF/USD/EXR) from a field.
+    Export(crate::export::cli::ExportArgs),
+    /// Benchmarks: write figures (JSON/CSV) and charts.
+    #[command(subcommand)]
+    Bench(BenchCommand),
+}
+
+#[derive(Debug, Subcommand)]
+pub enum BenchCommand {
+    /// Neural-field throughput (points/s) per backend.
+    Nn(crate::nn::bench::BenchNnArgs),
+    /// Environment SG fitting: lobes vs error vs time, with a chart.
+    Env(crate::sg::bench::BenchEnvArgs),
+    /// Asset back end timings (grid, marching cubes, simplify, unwrap, bake).
+    Export(crate::export::bench::BenchExportArgs),
+}
+
+/// What every command receives: the resolved global options. Holds no clap types.
+#[derive(Debug, Clone)]
+pub struct Context {
+    pub backend_choice: BackendChoice,
+    pub adapter: Option<String>,
+    pub json: bool,
+    pub quiet: bool,
+}
+
+impl Context {
+    pub fn from_global(g: &GlobalArgs) -> Self {
+        Self { backend_choice: g.backend, adapter: g.adapter.clone(), json: g.json, quiet: g.quiet }
+    }
+
+    /// Create the compute backend the user asked for.
+    pub fn backend(&self) -> anyhow::Result<Backend> {
+        let b = Backend::select(self.backend_choice, self.adapter.as_deref())?;
+        tracing::info!("backend: {}", b.describe());
+        Ok(b)
+    }
+
+    /// Emit one JSON Lines record (only with `--json`). `kind` becomes the `type` field.
+    pub fn emit(&self, kind: &str, value: serde_json::Value) {
+        if !self.json {
+            return;
+        }
+        let mut obj = match value {
+            serde_json::Value::Object(m) => m,
+            other => {
+                let mut m = serde_json::Map::new();
+                m.insert("value".into(), other);
+                m
+            }
+        };
+        obj.insert("type".into(), serde_json::Value::String(kind.into()));
+        let mut out = std::io::stdout().lock();
+        let _ = writeln!(out, "{}", serde_json::Value::Object(obj));
+    }
+
+    /// Print a human-readable line on stdout unless `--json` or `--quiet`.
+    pub fn say(&self, line: impl AsRef<str>) {
+        if !self.json && !self.quiet {
+            println!("{}", line.as_ref());
+        }
+    }
+
+    /// A progress bar drawn only on a terminal and never with `--json`/`--quiet`.
+    pub fn progress(&self, len: u64, what: &str) -> indicatif::ProgressBar {
+        use std::io::IsTerminal;
+        if self.json || self.quiet || !std::io::stderr().is_terminal() {
+            return indicatif::ProgressBar::hidden();
+        }
+        let pb = indicatif::ProgressBar::new(len);
+        pb.set_style(
+            indicatif::ProgressStyle::with_template("{msg:>12} [{bar:40}] {pos}/{len} {elapsed_precise} eta {eta}")
+                .expect("static template")
+                .progress_chars("=> "),
+        );
+        pb.set_message(what.to_string());
+        pb
+    }
+}
+
+fn init_logging(g: &GlobalArgs) {
+    let default = if g.quiet {
+        "error"
+    } else {
+        match g.verbose {
+            0 => "warn",
+            1 => "info",
+            2 => "debug",
+            _ => "trace",
+        }
+    };
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default));
+    let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_target(false).try_init();
+}
+
+/// Exit code for data/runtime errors. Usage errors exit with clap's 2.
+pub const EXIT_DATA: u8 = 1;
+pub const EXIT_USAGE: u8 = 2;
+
+/// Run the CLI: parse, dispatch, print the error chain once, map it to an exit code.
+pub fn main() -> ExitCode {
+    let cli = match Cli::try_parse() {
+        Ok(c) => c,
+        Err(e) => {
+            let _ = e.print();
+            return if e.use_stderr() { ExitCode::from(EXIT_USAGE) } else { ExitCode::SUCCESS };
+        }
+    };
+    init_logging(&cli.global);
+    let ctx = Context::from_global(&cli.global);
+    match run(&cli.command, &ctx) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            let chain: Vec<String> = e.chain().map(|c| c.to_string()).collect();
+            eprintln!("error: {}", chain.join(": "));
+            ExitCode::from(EXIT_DATA)
+        }
+    }
+}
+
+pub fn run(cmd: &Command, ctx: &Context) -> anyhow::Result<()> {
+    match cmd {
+        Command::Devices => devices::run(ctx),
+        Command::Info(a) => crate::scene::cli::run(a, ctx),
+        Command::Eval(a) => crate::eval::cli::run(a, ctx),
+        Command::FitEnv(a) => crate::sg::cli::run(a, ctx),
+        Command::Export(a) => crate::export::cli::run(a, ctx),
+        Command::Bench(BenchCommand::Nn(a)) => crate::nn::bench::run(a, ctx),
+        Command::Bench(BenchCommand::Env(a)) => crate::sg::bench::run(a, ctx),
+        Command::Bench(BenchCommand::Export(a)) => crate::export::bench::run(a, ctx),
+    }
+}

@@ -1,0 +1,3 @@
+//! Metrics: PSNR, SSIM, scale-aligned albedo, roughness MSE, environment error, Chamfer.
+
+pub mod cli;

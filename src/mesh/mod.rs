@@ -1,0 +1,1 @@
+//! SDF and material field interfaces, grid evaluation, marching cubes, cleanup, simplification, UV unwrap.

@@ -1,0 +1,4 @@
+//! Neural fields: encodings (frequency PE, multiresolution hash grid), MLPs with forward and
+//! backward (parameter and input gradients), Adam, the parameter store and checkpoints.
+
+pub mod bench;

@@ -1,0 +1,4 @@
+//! Spherical Gaussians: SG algebra, BRDF-as-SG shading, environment SGs <-> latlong EXR, SG fitting.
+
+pub mod bench;
+pub mod cli;

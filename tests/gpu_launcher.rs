@@ -1,0 +1,50 @@
+//! The wgpu launcher on whatever adapter exists (lavapipe in CI): upload, dispatch, readback,
+//! batching, shape checks, and agreement with the cpu computation.
+
+use pii_bake::backend::gpu::{groups_1d, util_kernels, Access, Bind, KernelSpec};
+use pii_bake::backend::Backend;
+use pii_bake::testing::{assert_close, Tolerance};
+
+fn gpu() -> std::sync::Arc<pii_bake::backend::GpuContext> {
+    match Backend::wgpu_for_tests() {
+        Ok(Backend::Gpu(g)) => g,
+        Ok(_) => unreachable!(),
+        Err(e) => panic!("the test command installs lavapipe; no adapter: {e}"),
+    }
+}
+
+#[test]
+fn axpy_matches_cpu_over_a_2d_launch() {
+    let g = gpu();
+    // More than 65535 workgroups of 256 forces the x/y spread.
+    let n = 65536 * 256 + 1000;
+    let x: Vec<f32> = (0..n).map(|i| ((i % 1000) as f32) * 0.001).collect();
+    let y: Vec<f32> = (0..n).map(|i| ((i % 7) as f32) - 3.0).collect();
+    let xb = g.upload_f32("x", &x);
+    let yb = g.upload_f32("y", &y);
+    util_kernels::axpy(&g, 2.5, &xb, &yb).unwrap();
+    let out = g.read_f32(&yb).unwrap();
+    let expected: Vec<f32> = x.iter().zip(&y).map(|(a, b)| 2.5 * a + b).collect();
+    assert_close("axpy", &out, &expected, Tolerance::F32_KERNEL);
+    assert_eq!(groups_1d(n, 256)[1], 2);
+}
+
+#[test]
+fn wrong_binding_count_is_an_error() {
+    let g = gpu();
+    let src = pii_bake::backend::gpu::shaders::with_lib(pii_bake::backend::gpu::shaders::UTIL);
+    let k = g.kernel("util", &src, "axpy", &KernelSpec::new(true, &[Access::Read, Access::ReadWrite])).unwrap();
+    let x = g.upload_f32("x", &[1.0]);
+    let err = g.dispatch(&k, None, &[Bind::Buffer(&x)], [1, 1, 1]).unwrap_err();
+    assert!(err.to_string().contains("expected 1 uniform"), "{err}");
+}
+
+#[test]
+fn tensors_round_trip_on_both_backends() {
+    for b in [Backend::cpu(), Backend::Gpu(gpu())] {
+        let t = b.upload(&[1.0, -2.0, 3.5]);
+        assert_eq!(b.to_vec(&t).unwrap(), vec![1.0, -2.0, 3.5], "{}", b.name());
+        let z = b.zeros(5);
+        assert_eq!(b.to_vec(&z).unwrap(), vec![0.0; 5]);
+    }
+}
