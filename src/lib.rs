@@ -7,6 +7,7 @@ pub mod backend;
 pub mod bake;
 pub mod cli;
 pub mod eval;
+pub mod image_io;
 pub mod export;
 pub mod mesh;
 pub mod nn;
