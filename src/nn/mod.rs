@@ -1,4 +1,7 @@
 //! Neural fields: encodings (frequency PE, multiresolution hash grid), MLPs with forward and
 //! backward (parameter and input gradients), Adam, the parameter store and checkpoints.
 
+pub mod adam;
 pub mod bench;
+pub mod encoding;
+pub mod params;

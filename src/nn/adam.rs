@@ -1,0 +1,449 @@
+//! Fused Adam (decoupled weight decay, AdamW-style) with bias correction, global-norm gradient
+//! clipping, learning-rate schedules, and a NaN/Inf guard: a step whose gradient holds a
+//! non-finite value is skipped (parameters, moments and the step counter stay untouched) and
+//! reported. cpu twin here, WGSL in `shaders/adam.wgsl`.
+//!
+//! One step with gradient `g`, clip scale `s = min(1, clip / ‖g‖)` (1 without clipping), step
+//! counter `t` (1 on the first applied step):
+//! ```text
+//! m ← β1·m + (1−β1)·s·g          v ← β2·v + (1−β2)·(s·g)²
+//! p ← p − lr·( (m / (1−β1^t)) / (sqrt(v / (1−β2^t)) + eps) + weight_decay·p )
+//! ```
+//! The weight decay is decoupled (Loshchilov & Hutter, `torch.optim.AdamW`), applied to the
+//! parameter before the update (`p` on the right is the old value).
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::backend::gpu::{shaders, Access, KernelSpec};
+use crate::backend::{Backend, BackendError, Tensor};
+
+/// The WGSL kernel family of this module.
+pub const ADAM_WGSL: &str = include_str!("../../shaders/adam.wgsl");
+
+/// Adam hyper-parameters. `lr` is the base learning rate a [`LrSchedule`] scales.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AdamConfig {
+    pub lr: f32,
+    pub beta1: f32,
+    pub beta2: f32,
+    pub eps: f32,
+    /// Decoupled weight decay (0 = none).
+    pub weight_decay: f32,
+    /// Clip the gradient's global L2 norm to this value (None = no clipping).
+    pub grad_clip_norm: Option<f32>,
+}
+
+impl Default for AdamConfig {
+    fn default() -> Self {
+        Self {
+            lr: 1e-3,
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-8,
+            weight_decay: 0.0,
+            grad_clip_norm: None,
+        }
+    }
+}
+
+impl AdamConfig {
+    pub fn with_lr(lr: f32) -> Self {
+        Self {
+            lr,
+            ..Default::default()
+        }
+    }
+
+    pub fn validate(&self) -> Result<(), BackendError> {
+        let bad = |m: String| Err(BackendError::Config(format!("adam: {m}")));
+        if !(self.lr.is_finite() && self.lr >= 0.0) {
+            return bad(format!("lr = {} (finite, >= 0)", self.lr));
+        }
+        for (name, b) in [("beta1", self.beta1), ("beta2", self.beta2)] {
+            if !(0.0..1.0).contains(&b) {
+                return bad(format!("{name} = {b} (in [0, 1))"));
+            }
+        }
+        if !(self.eps.is_finite() && self.eps > 0.0) {
+            return bad(format!("eps = {} (finite, > 0)", self.eps));
+        }
+        if !(self.weight_decay.is_finite() && self.weight_decay >= 0.0) {
+            return bad(format!(
+                "weight_decay = {} (finite, >= 0)",
+                self.weight_decay
+            ));
+        }
+        if let Some(c) = self.grad_clip_norm {
+            if !(c.is_finite() && c > 0.0) {
+                return bad(format!("grad_clip_norm = {c} (finite, > 0)"));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Learning-rate schedules: a factor of the base learning rate as a function of the step
+/// (0-based: the step about to be taken).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum LrSchedule {
+    #[default]
+    Constant,
+    /// `decay_rate^(step / decay_steps)` (continuous; IDR: 0.1 over the whole run).
+    Exponential { decay_rate: f32, decay_steps: u64 },
+    /// Linear warm-up from 1/warmup_steps to 1 over `warmup_steps`, then a cosine from 1 down to
+    /// `min_factor` at `total_steps` (and `min_factor` after).
+    WarmupCosine {
+        warmup_steps: u64,
+        total_steps: u64,
+        min_factor: f32,
+    },
+    /// `gamma^floor(step / step_size)`.
+    Step { step_size: u64, gamma: f32 },
+}
+
+impl LrSchedule {
+    /// The factor of the base learning rate at `step`.
+    pub fn factor_at(&self, step: u64) -> f32 {
+        match *self {
+            LrSchedule::Constant => 1.0,
+            LrSchedule::Exponential {
+                decay_rate,
+                decay_steps,
+            } => (decay_rate as f64).powf(step as f64 / decay_steps.max(1) as f64) as f32,
+            LrSchedule::WarmupCosine {
+                warmup_steps,
+                total_steps,
+                min_factor,
+            } => {
+                if step < warmup_steps {
+                    return (step + 1) as f32 / warmup_steps as f32;
+                }
+                let span = total_steps.saturating_sub(warmup_steps).max(1) as f64;
+                let t = ((step - warmup_steps) as f64 / span).min(1.0);
+                let c = 0.5 * (1.0 + (std::f64::consts::PI * t).cos());
+                (min_factor as f64 + (1.0 - min_factor as f64) * c) as f32
+            }
+            LrSchedule::Step { step_size, gamma } => {
+                (gamma as f64).powi((step / step_size.max(1)).min(i32::MAX as u64) as i32) as f32
+            }
+        }
+    }
+
+    /// The learning rate at `step` for a base learning rate `base_lr`.
+    pub fn lr_at(&self, base_lr: f32, step: u64) -> f32 {
+        base_lr * self.factor_at(step)
+    }
+}
+
+/// Adam's moments for one parameter tensor, on the backend the parameters live on.
+#[derive(Debug)]
+pub struct AdamState {
+    pub m: Tensor,
+    pub v: Tensor,
+    /// Applied steps so far (skipped steps do not count).
+    pub step: u64,
+}
+
+impl AdamState {
+    /// Zero moments for `len` parameters.
+    pub fn new(backend: &Backend, len: usize) -> Self {
+        Self {
+            m: backend.zeros(len),
+            v: backend.zeros(len),
+            step: 0,
+        }
+    }
+}
+
+/// What one [`Backend::adam_step`] did.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct AdamStepReport {
+    /// False when the gradient held NaN/Inf (or its norm overflowed): nothing was changed.
+    pub applied: bool,
+    /// Global L2 norm of the gradient before clipping (NaN/Inf when the step was skipped).
+    pub grad_norm: f32,
+    /// The factor the gradient was scaled by (1 without clipping).
+    pub clip_scale: f32,
+    /// Non-finite gradient values found.
+    pub non_finite: u64,
+    /// The state's step counter after this call.
+    pub step: u64,
+    /// The learning rate used.
+    pub lr: f32,
+}
+
+/// Constants of one update, computed on the host in f64.
+#[derive(Clone, Copy, Debug)]
+struct StepConsts {
+    lr: f32,
+    scale: f32,
+    bc1: f32,
+    bc2: f32,
+}
+
+fn step_consts(cfg: &AdamConfig, lr: f32, norm: f64, t: u64) -> StepConsts {
+    let scale = match cfg.grad_clip_norm {
+        Some(c) if norm > c as f64 => (c as f64 / norm) as f32,
+        _ => 1.0,
+    };
+    let t = t.min(i32::MAX as u64) as i32;
+    let bc1 = (1.0 - (cfg.beta1 as f64).powi(t)) as f32;
+    let bc2 = (1.0 - (cfg.beta2 as f64).powi(t)) as f32;
+    StepConsts {
+        lr,
+        scale,
+        bc1,
+        bc2,
+    }
+}
+
+/// The element-wise update (shared by the cpu twin and documented for the WGSL one).
+#[inline]
+fn update(cfg: &AdamConfig, k: &StepConsts, p: &mut f32, g: f32, m: &mut f32, v: &mut f32) {
+    let g = g * k.scale;
+    *m = cfg.beta1 * *m + (1.0 - cfg.beta1) * g;
+    *v = cfg.beta2 * *v + (1.0 - cfg.beta2) * g * g;
+    let m_hat = *m / k.bc1;
+    let v_hat = *v / k.bc2;
+    *p -= k.lr * (m_hat / (v_hat.sqrt() + cfg.eps) + cfg.weight_decay * *p);
+}
+
+/// Mirrors `AdamParams` in `shaders/adam.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Debug, bytemuck::Pod, bytemuck::Zeroable)]
+pub struct AdamParams {
+    pub n: u32,
+    pub lr: f32,
+    pub beta1: f32,
+    pub beta2: f32,
+    pub eps: f32,
+    pub weight_decay: f32,
+    pub grad_scale: f32,
+    pub bc1: f32,
+    pub bc2: f32,
+    /// Invocations in the statistics launch (grid-stride).
+    pub n_threads: u32,
+    pub _pad: [u32; 2],
+}
+const _: () = assert!(std::mem::size_of::<AdamParams>() == 48);
+
+const STATS_WG: u32 = 256;
+const MAX_STATS_GROUPS: usize = 256;
+
+impl Backend {
+    /// One fused Adam step on `params` with `grads` at learning rate `lr` (usually
+    /// `schedule.lr_at(cfg.lr, state.step)`). A non-finite gradient never reaches the parameters:
+    /// the step is skipped and reported (`applied = false`).
+    pub fn adam_step(
+        &self,
+        cfg: &AdamConfig,
+        state: &mut AdamState,
+        params: &mut Tensor,
+        grads: &Tensor,
+        lr: f32,
+    ) -> Result<AdamStepReport, BackendError> {
+        cfg.validate()?;
+        if !(lr.is_finite() && lr >= 0.0) {
+            return Err(BackendError::Config(format!(
+                "adam: learning rate {lr} (finite, >= 0)"
+            )));
+        }
+        let n = params.len();
+        if grads.len() != n || state.m.len() != n || state.v.len() != n {
+            return Err(BackendError::Shape(format!(
+                "adam: params {n}, grads {}, m {}, v {} values (must be equal)",
+                grads.len(),
+                state.m.len(),
+                state.v.len()
+            )));
+        }
+        if n > u32::MAX as usize {
+            return Err(BackendError::Shape(format!(
+                "adam: {n} parameters exceed 32-bit indexing"
+            )));
+        }
+        // Gradient statistics: squared norm (f64 on the host) and non-finite count.
+        let (sumsq, non_finite) = match self {
+            Backend::Cpu(_) => grad_stats_cpu(grads.host()?),
+            Backend::Gpu(g) => {
+                let groups = n.div_ceil(STATS_WG as usize).clamp(1, MAX_STATS_GROUPS);
+                let p = AdamParams {
+                    n: n as u32,
+                    n_threads: groups as u32 * STATS_WG,
+                    ..bytemuck::Zeroable::zeroed()
+                };
+                let partials = g.zeros_f32("adam.partials", 2 * groups);
+                let src = shaders::with_lib(ADAM_WGSL);
+                let k = g.kernel(
+                    "adam",
+                    &src,
+                    "grad_stats",
+                    &KernelSpec::new(true, &[Access::Read, Access::ReadWrite]),
+                )?;
+                g.dispatch(
+                    &k,
+                    Some(bytemuck::bytes_of(&p)),
+                    &[grads.device()?.into(), (&partials).into()],
+                    [groups as u32, 1, 1],
+                )?;
+                let host = g.read_f32(&partials)?;
+                let sumsq: f64 = host.chunks_exact(2).map(|c| c[0] as f64).sum();
+                let nf: f64 = host.chunks_exact(2).map(|c| c[1] as f64).sum();
+                (sumsq, nf as u64)
+            }
+        };
+        let norm = sumsq.sqrt();
+        if non_finite > 0 || !norm.is_finite() {
+            return Ok(AdamStepReport {
+                applied: false,
+                grad_norm: if non_finite > 0 {
+                    f32::NAN
+                } else {
+                    f32::INFINITY
+                },
+                clip_scale: 0.0,
+                non_finite,
+                step: state.step,
+                lr,
+            });
+        }
+        let t = state.step + 1;
+        let k = step_consts(cfg, lr, norm, t);
+        match self {
+            Backend::Cpu(_) => {
+                let g = grads.host()?;
+                // Split borrows: m and v are distinct tensors.
+                let (m, v) = (&mut state.m, &mut state.v);
+                let (m, v) = (m.host_mut()?, v.host_mut()?);
+                const CH: usize = 4096;
+                params
+                    .host_mut()?
+                    .par_chunks_mut(CH)
+                    .zip(g.par_chunks(CH))
+                    .zip(m.par_chunks_mut(CH))
+                    .zip(v.par_chunks_mut(CH))
+                    .for_each(|(((p, g), m), v)| {
+                        for i in 0..p.len() {
+                            update(cfg, &k, &mut p[i], g[i], &mut m[i], &mut v[i]);
+                        }
+                    });
+            }
+            Backend::Gpu(g) => {
+                let p = AdamParams {
+                    n: n as u32,
+                    lr: k.lr,
+                    beta1: cfg.beta1,
+                    beta2: cfg.beta2,
+                    eps: cfg.eps,
+                    weight_decay: cfg.weight_decay,
+                    grad_scale: k.scale,
+                    bc1: k.bc1,
+                    bc2: k.bc2,
+                    n_threads: 0,
+                    _pad: [0; 2],
+                };
+                let src = shaders::with_lib(ADAM_WGSL);
+                let spec = KernelSpec::new(
+                    true,
+                    &[
+                        Access::Read,
+                        Access::ReadWrite,
+                        Access::ReadWrite,
+                        Access::ReadWrite,
+                    ],
+                );
+                let kern = g.kernel("adam", &src, "adam_update", &spec)?;
+                let binds = [
+                    grads.device()?.into(),
+                    params.device()?.into(),
+                    state.m.device()?.into(),
+                    state.v.device()?.into(),
+                ];
+                g.dispatch(
+                    &kern,
+                    Some(bytemuck::bytes_of(&p)),
+                    &binds,
+                    crate::backend::gpu::groups_1d(n, 256),
+                )?;
+            }
+        }
+        state.step = t;
+        Ok(AdamStepReport {
+            applied: true,
+            grad_norm: norm as f32,
+            clip_scale: k.scale,
+            non_finite: 0,
+            step: t,
+            lr,
+        })
+    }
+}
+
+/// Sum of squares (f64) and the number of non-finite values.
+fn grad_stats_cpu(g: &[f32]) -> (f64, u64) {
+    g.par_chunks(4096)
+        .map(|c| {
+            let mut s = 0.0f64;
+            let mut nf = 0u64;
+            for &x in c {
+                if x.is_finite() {
+                    s += (x as f64) * (x as f64);
+                } else {
+                    nf += 1;
+                }
+            }
+            (s, nf)
+        })
+        .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn schedules() {
+        assert_eq!(LrSchedule::Constant.lr_at(0.5, 1000), 0.5);
+        let e = LrSchedule::Exponential {
+            decay_rate: 0.1,
+            decay_steps: 100,
+        };
+        assert!((e.factor_at(100) - 0.1).abs() < 1e-7);
+        assert!((e.factor_at(50) - 0.1f32.sqrt()).abs() < 1e-6);
+        let w = LrSchedule::WarmupCosine {
+            warmup_steps: 10,
+            total_steps: 110,
+            min_factor: 0.1,
+        };
+        assert!((w.factor_at(0) - 0.1).abs() < 1e-7);
+        assert!((w.factor_at(9) - 1.0).abs() < 1e-7);
+        assert!((w.factor_at(10) - 1.0).abs() < 1e-7);
+        assert!((w.factor_at(60) - 0.55).abs() < 1e-6);
+        assert!((w.factor_at(500) - 0.1).abs() < 1e-7);
+        let s = LrSchedule::Step {
+            step_size: 10,
+            gamma: 0.5,
+        };
+        assert_eq!(s.factor_at(9), 1.0);
+        assert_eq!(s.factor_at(25), 0.25);
+    }
+
+    #[test]
+    fn bad_configs_are_errors() {
+        assert!(AdamConfig {
+            beta1: 1.0,
+            ..Default::default()
+        }
+        .validate()
+        .is_err());
+        assert!(AdamConfig {
+            grad_clip_norm: Some(0.0),
+            ..Default::default()
+        }
+        .validate()
+        .is_err());
+        assert!(AdamConfig::default().validate().is_ok());
+    }
+}

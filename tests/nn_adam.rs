@@ -1,0 +1,256 @@
+//! Adam on the cpu backend and in WGSL (lavapipe): a hand-computed first step, an f64 reference
+//! over several steps (bias correction, global-norm clipping, decoupled weight decay, a schedule),
+//! and the NaN/Inf guard (a non-finite gradient never reaches the parameters).
+
+use pii_bake::backend::Backend;
+use pii_bake::nn::adam::{AdamConfig, AdamState, LrSchedule};
+use pii_bake::testing::{assert_close, Tolerance};
+use rand::Rng;
+
+fn gpu() -> Backend {
+    Backend::wgpu_for_tests().unwrap_or_else(|e| {
+        panic!("the test command (bash scripts/test.sh) installs lavapipe; no adapter: {e}")
+    })
+}
+
+fn backends() -> [Backend; 2] {
+    [Backend::cpu(), gpu()]
+}
+
+fn uniform(n: usize, lo: f32, hi: f32, seed: u64) -> Vec<f32> {
+    let mut r = pii_bake::util::rng(seed);
+    (0..n).map(|_| r.random_range(lo..hi)).collect()
+}
+
+/// The textbook update in f64 (see the formula in `nn::adam`).
+struct Reference {
+    p: Vec<f64>,
+    m: Vec<f64>,
+    v: Vec<f64>,
+    t: i32,
+}
+
+impl Reference {
+    fn step(&mut self, cfg: &AdamConfig, g: &[f32], lr: f64) {
+        let norm = g.iter().map(|&x| (x as f64).powi(2)).sum::<f64>().sqrt();
+        let s = match cfg.grad_clip_norm {
+            Some(c) if norm > c as f64 => c as f64 / norm,
+            _ => 1.0,
+        };
+        self.t += 1;
+        let (b1, b2) = (cfg.beta1 as f64, cfg.beta2 as f64);
+        for i in 0..self.p.len() {
+            let gi = g[i] as f64 * s;
+            self.m[i] = b1 * self.m[i] + (1.0 - b1) * gi;
+            self.v[i] = b2 * self.v[i] + (1.0 - b2) * gi * gi;
+            let mh = self.m[i] / (1.0 - b1.powi(self.t));
+            let vh = self.v[i] / (1.0 - b2.powi(self.t));
+            self.p[i] -=
+                lr * (mh / (vh.sqrt() + cfg.eps as f64) + cfg.weight_decay as f64 * self.p[i]);
+        }
+    }
+}
+
+#[test]
+fn first_step_moves_each_parameter_by_lr_against_its_gradient_sign() {
+    // Step 1: m̂ = g and v̂ = g², so the update is lr·g/(|g| + eps) ≈ lr·sign(g), plus lr·wd·p.
+    let cfg = AdamConfig {
+        lr: 0.01,
+        weight_decay: 0.5,
+        ..Default::default()
+    };
+    let p0 = [1.0f32, -2.0, 0.5, 3.0];
+    let g = [0.3f32, -4.0, 1e-3, -0.02];
+    let expected: Vec<f32> = p0
+        .iter()
+        .zip(&g)
+        .map(|(p, g)| p - 0.01 * (g.signum() + 0.5 * p))
+        .collect();
+    for b in backends() {
+        let mut p = b.upload(&p0);
+        let mut st = AdamState::new(&b, 4);
+        let rep = b
+            .adam_step(&cfg, &mut st, &mut p, &b.upload(&g), cfg.lr)
+            .unwrap();
+        assert!(rep.applied && rep.step == 1 && st.step == 1);
+        assert_close(
+            &format!("{} step 1", b.name()),
+            &b.to_vec(&p).unwrap(),
+            &expected,
+            Tolerance::new(1e-6, 1e-6),
+        );
+        let m: Vec<f32> = g.iter().map(|g| 0.1 * g).collect();
+        assert_close(
+            "m after step 1",
+            &b.to_vec(&st.m).unwrap(),
+            &m,
+            Tolerance::new(1e-6, 0.0),
+        );
+    }
+}
+
+#[test]
+fn matches_reference_over_steps_with_clipping_weight_decay_and_schedule() {
+    let n = 3000;
+    let cfg = AdamConfig {
+        lr: 0.05,
+        beta1: 0.8,
+        beta2: 0.95,
+        eps: 1e-6,
+        weight_decay: 0.01,
+        grad_clip_norm: Some(5.0),
+    };
+    let sched = LrSchedule::Exponential {
+        decay_rate: 0.5,
+        decay_steps: 2,
+    };
+    let p0 = uniform(n, -1.0, 1.0, 1);
+    // Step 0 and 2: gradients with norm ~ 0.03·sqrt(n/3) ≈ 0.9 (not clipped); steps 1 and 3: ~30 (clipped).
+    let grads: Vec<Vec<f32>> = (0..4)
+        .map(|s| {
+            uniform(n, -1.0, 1.0, 10 + s)
+                .iter()
+                .map(|g| g * if s % 2 == 0 { 0.03 } else { 1.0 })
+                .collect()
+        })
+        .collect();
+    let mut reference = Reference {
+        p: p0.iter().map(|&x| x as f64).collect(),
+        m: vec![0.0; n],
+        v: vec![0.0; n],
+        t: 0,
+    };
+    let mut norms = Vec::new();
+    for (s, g) in grads.iter().enumerate() {
+        reference.step(&cfg, g, sched.lr_at(cfg.lr, s as u64) as f64);
+        norms.push(g.iter().map(|&x| (x as f64).powi(2)).sum::<f64>().sqrt());
+    }
+    for b in backends() {
+        let mut p = b.upload(&p0);
+        let mut st = AdamState::new(&b, n);
+        for (s, g) in grads.iter().enumerate() {
+            let lr = sched.lr_at(cfg.lr, st.step);
+            let rep = b
+                .adam_step(&cfg, &mut st, &mut p, &b.upload(g), lr)
+                .unwrap();
+            assert!(rep.applied);
+            assert!(
+                (rep.grad_norm as f64 - norms[s]).abs() < 1e-4 * norms[s],
+                "{} norm {}",
+                b.name(),
+                rep.grad_norm
+            );
+            let clipped = norms[s] > 5.0;
+            assert_eq!(
+                rep.clip_scale < 1.0,
+                clipped,
+                "step {s}: clip scale {}",
+                rep.clip_scale
+            );
+        }
+        assert_eq!(st.step, 4);
+        let tol = Tolerance::new(1e-5, 1e-6);
+        assert_close(
+            &format!("{} params", b.name()),
+            &b.to_vec(&p).unwrap(),
+            &reference.p,
+            tol,
+        );
+        assert_close(
+            &format!("{} m", b.name()),
+            &b.to_vec(&st.m).unwrap(),
+            &reference.m,
+            tol,
+        );
+        assert_close(
+            &format!("{} v", b.name()),
+            &b.to_vec(&st.v).unwrap(),
+            &reference.v,
+            Tolerance::new(1e-5, 1e-9),
+        );
+    }
+}
+
+#[test]
+fn non_finite_gradients_never_reach_the_parameters() {
+    let cfg = AdamConfig {
+        grad_clip_norm: Some(1.0),
+        weight_decay: 0.1,
+        ..Default::default()
+    };
+    let n = 1000;
+    let p0 = uniform(n, -1.0, 1.0, 3);
+    let g0 = uniform(n, -1.0, 1.0, 4);
+    for b in backends() {
+        let mut p = b.upload(&p0);
+        let mut st = AdamState::new(&b, n);
+        b.adam_step(&cfg, &mut st, &mut p, &b.upload(&g0), 1e-2)
+            .unwrap();
+        let (p1, m1, v1) = (
+            b.to_vec(&p).unwrap(),
+            b.to_vec(&st.m).unwrap(),
+            b.to_vec(&st.v).unwrap(),
+        );
+        for bad in [f32::NAN, f32::INFINITY, f32::NEG_INFINITY] {
+            let mut g = g0.clone();
+            g[517] = bad;
+            g[3] = bad;
+            let rep = b
+                .adam_step(&cfg, &mut st, &mut p, &b.upload(&g), 1e-2)
+                .unwrap();
+            assert!(!rep.applied, "{}: step with {bad} applied", b.name());
+            assert_eq!(rep.non_finite, 2);
+            assert_eq!((rep.step, st.step), (1, 1));
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(
+                bits(&b.to_vec(&p).unwrap()),
+                bits(&p1),
+                "{}: params changed by a {bad} gradient",
+                b.name()
+            );
+            assert_eq!(bits(&b.to_vec(&st.m).unwrap()), bits(&m1));
+            assert_eq!(bits(&b.to_vec(&st.v).unwrap()), bits(&v1));
+        }
+        // A finite step afterwards proceeds as step 2.
+        let rep = b
+            .adam_step(&cfg, &mut st, &mut p, &b.upload(&g0), 1e-2)
+            .unwrap();
+        assert!(rep.applied && rep.step == 2);
+        assert!(b.to_vec(&p).unwrap().iter().all(|x| x.is_finite()));
+    }
+}
+
+#[test]
+fn mismatched_sizes_and_bad_settings_are_errors() {
+    let b = Backend::cpu();
+    let mut p = b.upload(&[1.0; 4]);
+    let mut st = AdamState::new(&b, 4);
+    let err = b
+        .adam_step(
+            &AdamConfig::default(),
+            &mut st,
+            &mut p,
+            &b.upload(&[1.0; 3]),
+            1e-3,
+        )
+        .unwrap_err();
+    assert!(err.to_string().contains("grads 3"), "{err}");
+    let err = b
+        .adam_step(
+            &AdamConfig::default(),
+            &mut st,
+            &mut p,
+            &b.upload(&[1.0; 4]),
+            f32::NAN,
+        )
+        .unwrap_err();
+    assert!(err.to_string().contains("learning rate"), "{err}");
+    let bad = AdamConfig {
+        eps: 0.0,
+        ..Default::default()
+    };
+    assert!(b
+        .adam_step(&bad, &mut st, &mut p, &b.upload(&[1.0; 4]), 1e-3)
+        .is_err());
+    assert_eq!(b.to_vec(&p).unwrap(), vec![1.0; 4]);
+}
