@@ -101,18 +101,15 @@ struct Cell {
     inside: vec3<f32>, // 1 inside the cube, 0 where the coordinate was clamped
 };
 
-// Mirrors `locate` in encoding.rs: clamp to the cube ((!(u > 0)) also catches NaN), then the cell.
+// Mirrors `locate` in encoding.rs: clamp to the cube (NaN goes to the low face), then the cell.
 fn locate(p: vec3<f32>, res: u32) -> Cell {
     var cell: Cell;
     let r = f32(res);
     for (var d = 0u; d < 3u; d++) {
         var u = (p[d] + P.bound) * P.inv_2b;
         var inside = 1.0;
-        if (!(u > 0.0)) {
-            u = 0.0;
-            inside = 0.0;
-        } else if (!(u < 1.0)) {
-            u = 1.0;
+        if (!(u > 0.0 && u < 1.0)) {
+            u = select(0.0, 1.0, u >= 1.0);
             inside = 0.0;
         }
         let pos = u * r;
@@ -150,14 +147,15 @@ fn corner_vertex(cell: Cell, c: u32) -> vec3<u32> {
     return cell.base + vec3<u32>(c & 1u, (c >> 1u) & 1u, (c >> 2u) & 1u);
 }
 
-// One invocation per (point, level).
+// One invocation per (level, point), level-major.
 @compute @workgroup_size(64)
 fn grid_forward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let t = linear_index(gid, nwg, WG);
     let nl = P.n_freqs_or_levels;
     if (t >= P.n * nl) { return; }
-    let i = t / nl;
-    let l = t % nl;
+    // Level-major: neighbouring invocations read the same level's table at nearby points.
+    let i = t % P.n;
+    let l = t / P.n;
     let nf = P.include_input_or_features;
     let lvl = levels[l];
     let cell = locate(grid_point(i), lvl.resolution);
@@ -189,8 +187,9 @@ fn grid_backward_params(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(
     let t = linear_index(gid, nwg, WG);
     let nl = P.n_freqs_or_levels;
     if (t >= P.n * nl) { return; }
-    let i = t / nl;
-    let l = t % nl;
+    // Level-major: neighbouring invocations read the same level's table at nearby points.
+    let i = t % P.n;
+    let l = t / P.n;
     let nf = P.include_input_or_features;
     let lvl = levels[l];
     let cell = locate(grid_point(i), lvl.resolution);

@@ -31,6 +31,7 @@ struct Reference {
 }
 
 impl Reference {
+    #[allow(clippy::needless_range_loop)] // four arrays indexed together: clearest with an index
     fn step(&mut self, cfg: &AdamConfig, g: &[f32], lr: f64) {
         let norm = g.iter().map(|&x| (x as f64).powi(2)).sum::<f64>().sqrt();
         let s = match cfg.grad_clip_norm {

@@ -385,14 +385,12 @@ fn locate<T: Real>(p: [T; 3], bound: T, inv_2b: T, res: u32) -> Cell<T> {
         frac: [zero; 3],
         inside: [true; 3],
     };
-    for d in 0..3 {
-        let mut u = (p[d] + bound) * inv_2b;
-        // `!(u > 0)` also catches NaN.
-        if !(u > zero) {
-            u = zero;
-            cell.inside[d] = false;
-        } else if !(u < one) {
-            u = one;
+    for (d, &pd) in p.iter().enumerate() {
+        let mut u = (pd + bound) * inv_2b;
+        // False for NaN too: NaN is clamped to the low face.
+        let inside = u > zero && u < one;
+        if !inside {
+            u = if u >= one { one } else { zero };
             cell.inside[d] = false;
         }
         let pos = u * r;
