@@ -376,6 +376,7 @@ struct Cell<T> {
     inside: [bool; 3],
 }
 
+#[inline(always)]
 fn locate<T: Real>(p: [T; 3], bound: T, inv_2b: T, res: u32) -> Cell<T> {
     let zero = T::default();
     let one = T::from_f64(1.0);
@@ -394,7 +395,8 @@ fn locate<T: Real>(p: [T; 3], bound: T, inv_2b: T, res: u32) -> Cell<T> {
             cell.inside[d] = false;
         }
         let pos = u * r;
-        let i = (pos.to_f64().floor() as u32).min(res - 1);
+        // pos >= 0, so truncation is floor.
+        let i = (pos.to_f64() as u32).min(res - 1);
         cell.base[d] = i;
         cell.frac[d] = pos - T::from_f64(i as f64);
     }
@@ -402,7 +404,7 @@ fn locate<T: Real>(p: [T; 3], bound: T, inv_2b: T, res: u32) -> Cell<T> {
 }
 
 /// Table entry of a vertex in a level (relative to the level's offset).
-#[inline]
+#[inline(always)]
 pub fn vertex_index(lvl: &GridLevel, v: [u32; 3], table_mask: u32) -> u32 {
     if lvl.dense {
         let s = lvl.resolution + 1;
@@ -416,6 +418,7 @@ pub fn vertex_index(lvl: &GridLevel, v: [u32; 3], table_mask: u32) -> u32 {
 }
 
 /// The 8 corners of a cell: (entry index in the flat table, trilinear weight, d weight / d frac).
+#[inline(always)]
 fn corners<T: Real>(lvl: &GridLevel, cell: &Cell<T>, table_mask: u32) -> [(usize, T, [T; 3]); 8] {
     let one = T::from_f64(1.0);
     let mut out = [(0usize, T::default(), [T::default(); 3]); 8];
