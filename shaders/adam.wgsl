@@ -3,6 +3,7 @@
 //
 // Bindings (0 uniform, storage from 1 in KernelSpec order):
 //   grad_stats:   1 grads (read), 2 partials (rw): per workgroup [sum of squares, non-finite count]
+//                 at pair partial_offset + workgroup id (a group step shares one partials buffer)
 //   adam_update:  1 grads (read), 2 params (rw), 3 m (rw), 4 v (rw)
 // The two entry points are never in one pipeline and share binding numbers.
 
@@ -17,8 +18,8 @@ struct AdamParams {
     bc1: f32,
     bc2: f32,
     n_threads: u32,
+    partial_offset: u32,
     _pad0: u32,
-    _pad1: u32,
 };
 
 @group(0) @binding(0) var<uniform> A: AdamParams;
@@ -64,8 +65,9 @@ fn grad_stats(
         workgroupBarrier();
     }
     if (lid == 0u) {
-        partials[2u * wid.x] = sum_sq[0];
-        partials[2u * wid.x + 1u] = bad[0];
+        let o = 2u * (A.partial_offset + wid.x);
+        partials[o] = sum_sq[0];
+        partials[o + 1u] = bad[0];
     }
 }
 

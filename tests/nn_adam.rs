@@ -3,7 +3,7 @@
 //! and the NaN/Inf guard (a non-finite gradient never reaches the parameters).
 
 use pii_bake::backend::Backend;
-use pii_bake::nn::adam::{AdamConfig, AdamState, LrSchedule};
+use pii_bake::nn::adam::{AdamConfig, AdamItem, AdamState, LrSchedule};
 use pii_bake::testing::{assert_close, Tolerance};
 use rand::Rng;
 
@@ -254,4 +254,85 @@ fn mismatched_sizes_and_bad_settings_are_errors() {
         .adam_step(&bad, &mut st, &mut p, &b.upload(&[1.0; 4]), 1e-3)
         .is_err());
     assert_eq!(b.to_vec(&p).unwrap(), vec![1.0; 4]);
+}
+
+/// A group step clips by the global norm over all tensors (= one step on the concatenation) and a
+/// non-finite value in one tensor's gradient leaves every tensor untouched.
+#[test]
+fn group_step_uses_the_global_norm_and_skips_as_a_whole() {
+    let cfg = AdamConfig {
+        lr: 0.02,
+        grad_clip_norm: Some(2.0),
+        weight_decay: 0.05,
+        ..Default::default()
+    };
+    let (na, nb) = (700, 1300);
+    let (pa, pb) = (uniform(na, -1.0, 1.0, 40), uniform(nb, -1.0, 1.0, 41));
+    let (ga, gb) = (uniform(na, -1.0, 1.0, 42), uniform(nb, -0.1, 0.1, 43));
+    let concat = |a: &[f32], b: &[f32]| a.iter().chain(b).copied().collect::<Vec<f32>>();
+    let mut reference = Reference {
+        p: concat(&pa, &pb).iter().map(|&x| x as f64).collect(),
+        m: vec![0.0; na + nb],
+        v: vec![0.0; na + nb],
+        t: 0,
+    };
+    for _ in 0..2 {
+        reference.step(&cfg, &concat(&ga, &gb), cfg.lr as f64);
+    }
+    for b in backends() {
+        let (mut ta, mut tb) = (b.upload(&pa), b.upload(&pb));
+        let (mut sa, mut sb) = (AdamState::new(&b, na), AdamState::new(&b, nb));
+        let (gat, gbt) = (b.upload(&ga), b.upload(&gb));
+        for _ in 0..2 {
+            let mut items = [
+                AdamItem {
+                    params: &mut ta,
+                    grads: &gat,
+                    state: &mut sa,
+                },
+                AdamItem {
+                    params: &mut tb,
+                    grads: &gbt,
+                    state: &mut sb,
+                },
+            ];
+            let rep = b.adam_step_group(&cfg, &mut items, cfg.lr).unwrap();
+            assert!(rep.applied && rep.clip_scale < 1.0, "{}: {rep:?}", b.name());
+        }
+        let got = concat(&b.to_vec(&ta).unwrap(), &b.to_vec(&tb).unwrap());
+        assert_close(
+            &format!("{} group params", b.name()),
+            &got,
+            &reference.p,
+            Tolerance::new(1e-5, 1e-6),
+        );
+        assert_eq!((sa.step, sb.step), (2, 2));
+
+        let mut bad = gb.clone();
+        bad[1000] = f32::NAN;
+        let bad = b.upload(&bad);
+        let (before_a, before_b) = (b.to_vec(&ta).unwrap(), b.to_vec(&tb).unwrap());
+        let mut items = [
+            AdamItem {
+                params: &mut ta,
+                grads: &gat,
+                state: &mut sa,
+            },
+            AdamItem {
+                params: &mut tb,
+                grads: &bad,
+                state: &mut sb,
+            },
+        ];
+        let rep = b.adam_step_group(&cfg, &mut items, cfg.lr).unwrap();
+        assert!(!rep.applied && rep.non_finite == 1);
+        assert_eq!(
+            b.to_vec(&ta).unwrap(),
+            before_a,
+            "{}: the finite tensor moved",
+            b.name()
+        );
+        assert_eq!(b.to_vec(&tb).unwrap(), before_b);
+        assert_eq!((sa.step, sb.step), (2, 2));
+    }
 }

@@ -225,17 +225,27 @@ pub struct AdamParams {
     pub bc2: f32,
     /// Invocations in the statistics launch (grid-stride).
     pub n_threads: u32,
-    pub _pad: [u32; 2],
+    /// First (sum, count) pair this statistics launch writes in the shared partials buffer.
+    pub partial_offset: u32,
+    pub _pad: u32,
 }
 const _: () = assert!(std::mem::size_of::<AdamParams>() == 48);
 
 const STATS_WG: u32 = 256;
 const MAX_STATS_GROUPS: usize = 256;
 
+/// One parameter tensor of a [`Backend::adam_step_group`].
+pub struct AdamItem<'a> {
+    pub params: &'a mut Tensor,
+    pub grads: &'a Tensor,
+    pub state: &'a mut AdamState,
+}
+
 impl Backend {
     /// One fused Adam step on `params` with `grads` at learning rate `lr` (usually
     /// `schedule.lr_at(cfg.lr, state.step)`). A non-finite gradient never reaches the parameters:
-    /// the step is skipped and reported (`applied = false`).
+    /// the step is skipped and reported (`applied = false`). Clipping uses this tensor's norm;
+    /// for a model with several tensors use [`Backend::adam_step_group`].
     pub fn adam_step(
         &self,
         cfg: &AdamConfig,
@@ -244,50 +254,91 @@ impl Backend {
         grads: &Tensor,
         lr: f32,
     ) -> Result<AdamStepReport, BackendError> {
+        self.adam_step_group(
+            cfg,
+            &mut [AdamItem {
+                params,
+                grads,
+                state,
+            }],
+            lr,
+        )
+    }
+
+    /// One Adam step over several tensors (a whole model): the gradient norm for clipping is the
+    /// global L2 norm over all of them, and a non-finite value in any gradient skips the step for
+    /// all of them (nothing changes). Each tensor's bias correction uses its own state's step
+    /// counter; the report's `step` is the largest counter after the call. On wgpu the whole
+    /// group costs one readback (the gradient statistics) and two batched submissions.
+    pub fn adam_step_group(
+        &self,
+        cfg: &AdamConfig,
+        items: &mut [AdamItem<'_>],
+        lr: f32,
+    ) -> Result<AdamStepReport, BackendError> {
         cfg.validate()?;
         if !(lr.is_finite() && lr >= 0.0) {
             return Err(BackendError::Config(format!(
                 "adam: learning rate {lr} (finite, >= 0)"
             )));
         }
-        let n = params.len();
-        if grads.len() != n || state.m.len() != n || state.v.len() != n {
-            return Err(BackendError::Shape(format!(
-                "adam: params {n}, grads {}, m {}, v {} values (must be equal)",
-                grads.len(),
-                state.m.len(),
-                state.v.len()
-            )));
+        for (i, it) in items.iter().enumerate() {
+            let n = it.params.len();
+            if it.grads.len() != n || it.state.m.len() != n || it.state.v.len() != n {
+                return Err(BackendError::Shape(format!(
+                    "adam: tensor {i}: params {n}, grads {}, m {}, v {} values (must be equal)",
+                    it.grads.len(),
+                    it.state.m.len(),
+                    it.state.v.len()
+                )));
+            }
+            if n > u32::MAX as usize {
+                return Err(BackendError::Shape(format!(
+                    "adam: tensor {i}: {n} parameters exceed 32-bit indexing"
+                )));
+            }
         }
-        if n > u32::MAX as usize {
-            return Err(BackendError::Shape(format!(
-                "adam: {n} parameters exceed 32-bit indexing"
-            )));
-        }
-        // Gradient statistics: squared norm (f64 on the host) and non-finite count.
+        let max_step =
+            |items: &[AdamItem<'_>]| items.iter().map(|it| it.state.step).max().unwrap_or(0);
+        // Gradient statistics over the group: squared norm (summed in f64) and non-finite count.
         let (sumsq, non_finite) = match self {
-            Backend::Cpu(_) => grad_stats_cpu(grads.host()?),
+            Backend::Cpu(_) => {
+                let mut acc = (0.0f64, 0u64);
+                for it in items.iter() {
+                    let (s, nf) = grad_stats_cpu(it.grads.host()?);
+                    acc = (acc.0 + s, acc.1 + nf);
+                }
+                acc
+            }
             Backend::Gpu(g) => {
-                let groups = n.div_ceil(STATS_WG as usize).clamp(1, MAX_STATS_GROUPS);
-                let p = AdamParams {
-                    n: n as u32,
-                    n_threads: groups as u32 * STATS_WG,
-                    ..bytemuck::Zeroable::zeroed()
-                };
-                let partials = g.zeros_f32("adam.partials", 2 * groups);
+                let groups: Vec<usize> = items
+                    .iter()
+                    .map(|it| {
+                        it.params
+                            .len()
+                            .div_ceil(STATS_WG as usize)
+                            .clamp(1, MAX_STATS_GROUPS)
+                    })
+                    .collect();
+                let total: usize = groups.iter().sum();
+                let partials = g.zeros_f32("adam.partials", 2 * total.max(1));
                 let src = shaders::with_lib(ADAM_WGSL);
-                let k = g.kernel(
-                    "adam",
-                    &src,
-                    "grad_stats",
-                    &KernelSpec::new(true, &[Access::Read, Access::ReadWrite]),
-                )?;
-                g.dispatch(
-                    &k,
-                    Some(bytemuck::bytes_of(&p)),
-                    &[grads.device()?.into(), (&partials).into()],
-                    [groups as u32, 1, 1],
-                )?;
+                let spec = KernelSpec::new(true, &[Access::Read, Access::ReadWrite]);
+                let k = g.kernel("adam", &src, "grad_stats", &spec)?;
+                let mut batch = g.batch("adam.grad_stats");
+                let mut offset = 0;
+                for (it, &gr) in items.iter().zip(&groups) {
+                    let p = AdamParams {
+                        n: it.params.len() as u32,
+                        n_threads: gr as u32 * STATS_WG,
+                        partial_offset: offset as u32,
+                        ..bytemuck::Zeroable::zeroed()
+                    };
+                    let binds = [it.grads.device()?.into(), (&partials).into()];
+                    batch.dispatch(&k, Some(bytemuck::bytes_of(&p)), &binds, [gr as u32, 1, 1])?;
+                    offset += gr;
+                }
+                batch.submit()?;
                 let host = g.read_f32(&partials)?;
                 let sumsq: f64 = host.chunks_exact(2).map(|c| c[0] as f64).sum();
                 let nf: f64 = host.chunks_exact(2).map(|c| c[1] as f64).sum();
@@ -305,45 +356,35 @@ impl Backend {
                 },
                 clip_scale: 0.0,
                 non_finite,
-                step: state.step,
+                step: max_step(items),
                 lr,
             });
         }
-        let t = state.step + 1;
-        let k = step_consts(cfg, lr, norm, t);
+        let mut scale = 1.0;
         match self {
             Backend::Cpu(_) => {
-                let g = grads.host()?;
-                // Split borrows: m and v are distinct tensors.
-                let (m, v) = (&mut state.m, &mut state.v);
-                let (m, v) = (m.host_mut()?, v.host_mut()?);
-                const CH: usize = 4096;
-                params
-                    .host_mut()?
-                    .par_chunks_mut(CH)
-                    .zip(g.par_chunks(CH))
-                    .zip(m.par_chunks_mut(CH))
-                    .zip(v.par_chunks_mut(CH))
-                    .for_each(|(((p, g), m), v)| {
-                        for i in 0..p.len() {
-                            update(cfg, &k, &mut p[i], g[i], &mut m[i], &mut v[i]);
-                        }
-                    });
+                for it in items.iter_mut() {
+                    let k = step_consts(cfg, lr, norm, it.state.step + 1);
+                    scale = k.scale;
+                    let g = it.grads.host()?;
+                    let AdamState { m, v, .. } = &mut *it.state;
+                    let (m, v) = (m.host_mut()?, v.host_mut()?);
+                    const CH: usize = 4096;
+                    it.params
+                        .host_mut()?
+                        .par_chunks_mut(CH)
+                        .zip(g.par_chunks(CH))
+                        .zip(m.par_chunks_mut(CH))
+                        .zip(v.par_chunks_mut(CH))
+                        .for_each(|(((p, g), m), v)| {
+                            for i in 0..p.len() {
+                                update(cfg, &k, &mut p[i], g[i], &mut m[i], &mut v[i]);
+                            }
+                        });
+                    it.state.step += 1;
+                }
             }
             Backend::Gpu(g) => {
-                let p = AdamParams {
-                    n: n as u32,
-                    lr: k.lr,
-                    beta1: cfg.beta1,
-                    beta2: cfg.beta2,
-                    eps: cfg.eps,
-                    weight_decay: cfg.weight_decay,
-                    grad_scale: k.scale,
-                    bc1: k.bc1,
-                    bc2: k.bc2,
-                    n_threads: 0,
-                    _pad: [0; 2],
-                };
                 let src = shaders::with_lib(ADAM_WGSL);
                 let spec = KernelSpec::new(
                     true,
@@ -355,27 +396,53 @@ impl Backend {
                     ],
                 );
                 let kern = g.kernel("adam", &src, "adam_update", &spec)?;
-                let binds = [
-                    grads.device()?.into(),
-                    params.device()?.into(),
-                    state.m.device()?.into(),
-                    state.v.device()?.into(),
-                ];
-                g.dispatch(
-                    &kern,
-                    Some(bytemuck::bytes_of(&p)),
-                    &binds,
-                    crate::backend::gpu::groups_1d(n, 256),
-                )?;
+                let mut batch = g.batch("adam.update");
+                for it in items.iter() {
+                    let n = it.params.len();
+                    if n == 0 {
+                        continue;
+                    }
+                    let k = step_consts(cfg, lr, norm, it.state.step + 1);
+                    scale = k.scale;
+                    let p = AdamParams {
+                        n: n as u32,
+                        lr: k.lr,
+                        beta1: cfg.beta1,
+                        beta2: cfg.beta2,
+                        eps: cfg.eps,
+                        weight_decay: cfg.weight_decay,
+                        grad_scale: k.scale,
+                        bc1: k.bc1,
+                        bc2: k.bc2,
+                        n_threads: 0,
+                        partial_offset: 0,
+                        _pad: 0,
+                    };
+                    let binds = [
+                        it.grads.device()?.into(),
+                        it.params.device()?.into(),
+                        it.state.m.device()?.into(),
+                        it.state.v.device()?.into(),
+                    ];
+                    batch.dispatch(
+                        &kern,
+                        Some(bytemuck::bytes_of(&p)),
+                        &binds,
+                        crate::backend::gpu::groups_1d(n, 256),
+                    )?;
+                }
+                batch.submit()?;
+                for it in items.iter_mut() {
+                    it.state.step += 1;
+                }
             }
         }
-        state.step = t;
         Ok(AdamStepReport {
             applied: true,
             grad_norm: norm as f32,
-            clip_scale: k.scale,
+            clip_scale: scale,
             non_finite: 0,
-            step: t,
+            step: max_step(items),
             lr,
         })
     }
