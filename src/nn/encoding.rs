@@ -941,6 +941,26 @@ mod tests {
     use super::*;
 
     #[test]
+    fn vertex_indices_follow_the_instant_ngp_rules() {
+        let dense = GridLevel {
+            resolution: 4,
+            offset: 0,
+            entries: 125,
+            dense: true,
+        };
+        assert_eq!(vertex_index(&dense, [1, 2, 3], 1023), 1 + 2 * 5 + 3 * 25);
+        let hashed = GridLevel {
+            resolution: 64,
+            offset: 0,
+            entries: 1024,
+            dense: false,
+        };
+        // 2·2654435761 = 5308871522 ≡ 1013904226 (mod 2^32); 3·805459861 = 2416379583.
+        let expected = (1u64 ^ 1_013_904_226u64 ^ 2_416_379_583u64) & 1023;
+        assert_eq!(vertex_index(&hashed, [1, 2, 3], 1023) as u64, expected);
+    }
+
+    #[test]
     fn sizes_and_levels() {
         let pe = EncodingConfig::frequency(6);
         assert_eq!(pe.out_dim(3), 39);
