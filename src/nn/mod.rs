@@ -2,6 +2,6 @@
 //! backward (parameter and input gradients), Adam, the parameter store and checkpoints.
 
 pub mod adam;
-pub mod bench;
 pub mod encoding;
 pub mod params;
+pub mod bench;
