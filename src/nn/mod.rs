@@ -2,3 +2,5 @@
 //! backward (parameter and input gradients), Adam, the parameter store and checkpoints.
 
 pub mod bench;
+pub mod field;
+pub mod mlp;
