@@ -124,6 +124,7 @@ fn act_f(z: f32, kind: u32, p: f32) -> f32 {
         case 2u: { return select(p * z, z, z > 0.0); }
         case 3u: {
             let y = p * z;
+            if (y > 20.0) { return z; }
             return (max(y, 0.0) + log(1.0 + exp(-abs(y)))) / p;
         }
         case 4u: { return sigmoid(z); }

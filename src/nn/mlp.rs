@@ -35,7 +35,7 @@ pub enum Activation {
     None,
     Relu,
     LeakyRelu(f32),
-    /// `log(1 + exp(β z))/β`, overflow-safe.
+    /// `log(1 + exp(β z))/β`, overflow-safe (exactly `z` past `βz = 20`, as PyTorch's threshold).
     Softplus { beta: f32 },
     /// Overflow-safe logistic function.
     Sigmoid,
@@ -69,7 +69,12 @@ impl Activation {
             Activation::Softplus { beta } => {
                 let b = T::from_f64(beta as f64);
                 let y = b * z;
-                (y.max_(zero) + (-y.abs_()).exp_().ln_1p_()) / b
+                // Past βz = 20 softplus equals z to f32 precision (and β·z may overflow).
+                if y > T::from_f64(20.0) {
+                    z
+                } else {
+                    (y.max_(zero) + (-y.abs_()).exp_().ln_1p_()) / b
+                }
             }
             Activation::Sigmoid => sigmoid(z),
         }
