@@ -7,7 +7,12 @@ use pii_bake::nn::mlp::{cpu_backward, cpu_forward, Activation, Init, Mlp, MlpCon
 use pii_bake::testing::{assert_close, assert_finite, check_grad, Tolerance};
 use rand::Rng;
 
-fn config(activation: Activation, output_activation: Activation, skip: bool, weight_norm: bool) -> MlpConfig {
+fn config(
+    activation: Activation,
+    output_activation: Activation,
+    skip: bool,
+    weight_norm: bool,
+) -> MlpConfig {
     MlpConfig {
         in_dim: 3,
         widths: vec![7, 9, 6],
@@ -45,8 +50,22 @@ fn check_fd(cfg: MlpConfig, what: &str) {
     let (_, cache) = cpu_forward(&mlp, &p, &x, true).unwrap();
     let (dp, dx) = cpu_backward(&mlp, &p, &cache, &w).unwrap();
     let h = 1e-6;
-    check_grad(&format!("{what}: dL/dparams"), &p, &dp, h, Tolerance::F64_GRAD, |pp| loss(pp, &x));
-    check_grad(&format!("{what}: dL/dx"), &x, &dx, h, Tolerance::F64_GRAD, |xx| loss(&p, xx));
+    check_grad(
+        &format!("{what}: dL/dparams"),
+        &p,
+        &dp,
+        h,
+        Tolerance::F64_GRAD,
+        |pp| loss(pp, &x),
+    );
+    check_grad(
+        &format!("{what}: dL/dx"),
+        &x,
+        &dx,
+        h,
+        Tolerance::F64_GRAD,
+        |xx| loss(&p, xx),
+    );
 }
 
 fn activations() -> Vec<(&'static str, Activation)> {
@@ -63,8 +82,14 @@ fn activations() -> Vec<(&'static str, Activation)> {
 #[test]
 fn backward_matches_finite_differences_for_every_activation() {
     for (name, act) in activations() {
-        check_fd(config(act, Activation::None, false, false), &format!("hidden {name}"));
-        check_fd(config(Activation::Softplus { beta: 3.0 }, act, false, false), &format!("output {name}"));
+        check_fd(
+            config(act, Activation::None, false, false),
+            &format!("hidden {name}"),
+        );
+        check_fd(
+            config(Activation::Softplus { beta: 3.0 }, act, false, false),
+            &format!("output {name}"),
+        );
     }
 }
 
@@ -73,7 +98,10 @@ fn backward_matches_finite_differences_with_skip_and_weight_norm() {
     let sp = Activation::Softplus { beta: 100.0 };
     check_fd(config(sp, Activation::None, true, false), "skip");
     check_fd(config(sp, Activation::None, false, true), "weight norm");
-    check_fd(config(sp, Activation::Sigmoid, true, true), "skip + weight norm");
+    check_fd(
+        config(sp, Activation::Sigmoid, true, true),
+        "skip + weight norm",
+    );
     // Two skips; then no hidden layers at all (a single linear layer).
     let mut c = config(Activation::Relu, Activation::None, false, true);
     c.widths = vec![6, 8, 8, 7];
@@ -86,7 +114,13 @@ fn backward_matches_finite_differences_with_skip_and_weight_norm() {
 
 #[test]
 fn f32_twin_matches_f64_reference() {
-    let mlp = Mlp::new(config(Activation::Softplus { beta: 100.0 }, Activation::None, true, true)).unwrap();
+    let mlp = Mlp::new(config(
+        Activation::Softplus { beta: 100.0 },
+        Activation::None,
+        true,
+        true,
+    ))
+    .unwrap();
     let p64 = params(&mlp, 3);
     // More rows than one rayon chunk, so the chunked gradient reduction is exercised.
     let x64 = random(700 * 3, 1.0, 4);
@@ -98,12 +132,18 @@ fn f32_twin_matches_f64_reference() {
     let (dp32, dx32) = cpu_backward(&mlp, &f(&p64), &c32, &f(&w64)).unwrap();
     let tol = Tolerance::new(1e-3, 1e-4);
     assert_close("forward f32 vs f64", &y32, &y64, tol);
-    assert_close("dparams f32 vs f64", &dp32, &dp64, Tolerance::new(1e-3, 1e-3));
+    assert_close(
+        "dparams f32 vs f64",
+        &dp32,
+        &dp64,
+        Tolerance::new(1e-3, 1e-3),
+    );
     assert_close("dx f32 vs f64", &dx32, &dx64, tol);
 }
 
 fn gpu() -> Backend {
-    Backend::wgpu_for_tests().unwrap_or_else(|e| panic!("the test command installs lavapipe; no adapter: {e}"))
+    Backend::wgpu_for_tests()
+        .unwrap_or_else(|e| panic!("the test command installs lavapipe; no adapter: {e}"))
 }
 
 /// WGSL forward and backward vs the cpu backend, same f32 inputs.
@@ -111,13 +151,23 @@ fn check_gpu(gpu: &Backend, cfg: MlpConfig, rows: usize, what: &str) {
     let cpu = Backend::cpu();
     let mlp = Mlp::new(cfg).unwrap();
     let p: Vec<f32> = params(&mlp, 21).iter().map(|&v| v as f32).collect();
-    let x: Vec<f32> = random(rows * mlp.in_dim(), 1.0, 22).iter().map(|&v| v as f32).collect();
-    let dy: Vec<f32> = random(rows * mlp.out_dim(), 1.0, 23).iter().map(|&v| v as f32).collect();
+    let x: Vec<f32> = random(rows * mlp.in_dim(), 1.0, 22)
+        .iter()
+        .map(|&v| v as f32)
+        .collect();
+    let dy: Vec<f32> = random(rows * mlp.out_dim(), 1.0, 23)
+        .iter()
+        .map(|&v| v as f32)
+        .collect();
     let run = |b: &Backend| -> (Vec<f32>, Vec<f32>, Vec<f32>) {
         let (pt, xt, dyt) = (b.upload(&p), b.upload(&x), b.upload(&dy));
         let fwd = b.mlp_forward(&mlp, &pt, &xt, true).unwrap();
         let g = b.mlp_backward(&mlp, &pt, &fwd, &dyt).unwrap();
-        (b.to_vec(&fwd.output).unwrap(), b.to_vec(&g.d_params).unwrap(), b.to_vec(&g.d_input).unwrap())
+        (
+            b.to_vec(&fwd.output).unwrap(),
+            b.to_vec(&g.d_params).unwrap(),
+            b.to_vec(&g.d_input).unwrap(),
+        )
     };
     let (yc, dpc, dxc) = run(&cpu);
     let (yg, dpg, dxg) = run(gpu);
@@ -133,12 +183,27 @@ fn check_gpu(gpu: &Backend, cfg: MlpConfig, rows: usize, what: &str) {
 fn wgsl_matches_cpu_forward_and_backward() {
     let g = gpu();
     for (name, act) in activations() {
-        check_gpu(&g, config(act, Activation::Sigmoid, false, false), 37, &format!("hidden {name}"));
-        check_gpu(&g, config(Activation::Relu, act, false, false), 37, &format!("output {name}"));
+        check_gpu(
+            &g,
+            config(act, Activation::Sigmoid, false, false),
+            37,
+            &format!("hidden {name}"),
+        );
+        check_gpu(
+            &g,
+            config(Activation::Relu, act, false, false),
+            37,
+            &format!("output {name}"),
+        );
     }
     let sp = Activation::Softplus { beta: 100.0 };
     check_gpu(&g, config(sp, Activation::None, true, false), 37, "skip");
-    check_gpu(&g, config(sp, Activation::None, true, true), 37, "skip + weight norm");
+    check_gpu(
+        &g,
+        config(sp, Activation::None, true, true),
+        37,
+        "skip + weight norm",
+    );
     // Several 64x64 output tiles and K steps of 16 with ragged edges.
     let big = MlpConfig {
         in_dim: 21,
@@ -155,10 +220,15 @@ fn wgsl_matches_cpu_forward_and_backward() {
 #[test]
 fn activations_are_overflow_safe() {
     for (name, act) in activations() {
-        for z in [-3e38f32, -1e30, -1e4, -88.8, -20.0, 0.0, 20.0, 88.8, 1e4, 1e30, 3e38] {
+        for z in [
+            -3e38f32, -1e30, -1e4, -88.8, -20.0, 0.0, 20.0, 88.8, 1e4, 1e30, 3e38,
+        ] {
             let y = act.forward(z);
             let d = act.derivative(z);
-            assert!(y.is_finite() && d.is_finite(), "{name}({z}) = {y}, derivative {d}");
+            assert!(
+                y.is_finite() && d.is_finite(),
+                "{name}({z}) = {y}, derivative {d}"
+            );
         }
     }
     let sp = Activation::Softplus { beta: 100.0 };
@@ -187,9 +257,18 @@ fn huge_inputs_give_finite_outputs_and_gradients_on_both_backends() {
         let pt = b.upload(&p);
         let fwd = b.mlp_forward(&mlp, &pt, &b.upload(&x), true).unwrap();
         let g = b.mlp_backward(&mlp, &pt, &fwd, &b.upload(&dy)).unwrap();
-        assert_finite(&format!("{}: output", b.name()), &b.to_vec(&fwd.output).unwrap());
-        assert_finite(&format!("{}: dL/dparams", b.name()), &b.to_vec(&g.d_params).unwrap());
-        assert_finite(&format!("{}: dL/dx", b.name()), &b.to_vec(&g.d_input).unwrap());
+        assert_finite(
+            &format!("{}: output", b.name()),
+            &b.to_vec(&fwd.output).unwrap(),
+        );
+        assert_finite(
+            &format!("{}: dL/dparams", b.name()),
+            &b.to_vec(&g.d_params).unwrap(),
+        );
+        assert_finite(
+            &format!("{}: dL/dx", b.name()),
+            &b.to_vec(&g.d_input).unwrap(),
+        );
     }
 }
 
@@ -230,16 +309,29 @@ fn bad_configs_and_shapes_are_errors() {
         let err = b.mlp_forward(&mlp, &short, &x, true).unwrap_err();
         assert!(err.to_string().contains("parameters"), "{err}");
         let pt = b.upload(&p);
-        let err = b.mlp_forward(&mlp, &pt, &b.upload(&[0.0; 7]), true).unwrap_err();
+        let err = b
+            .mlp_forward(&mlp, &pt, &b.upload(&[0.0; 7]), true)
+            .unwrap_err();
         assert!(err.to_string().contains("multiple of in_dim"), "{err}");
         let fwd = b.mlp_forward(&mlp, &pt, &x, false).unwrap();
-        let err = b.mlp_backward(&mlp, &pt, &fwd, &b.upload(&[0.0; 4])).unwrap_err();
+        let err = b
+            .mlp_backward(&mlp, &pt, &fwd, &b.upload(&[0.0; 4]))
+            .unwrap_err();
         assert!(err.to_string().contains("keep"), "{err}");
         let fwd = b.mlp_forward(&mlp, &pt, &x, true).unwrap();
-        let err = b.mlp_backward(&mlp, &pt, &fwd, &b.upload(&[0.0; 5])).unwrap_err();
+        let err = b
+            .mlp_backward(&mlp, &pt, &fwd, &b.upload(&[0.0; 5]))
+            .unwrap_err();
         assert!(err.to_string().contains("dL/dy"), "{err}");
     }
     // A host tensor handed to the wgpu backend.
-    let err = gpu().mlp_forward(&mlp, &Tensor::Host(p.clone()), &Tensor::Host(vec![0.0; 6]), false).unwrap_err();
+    let err = gpu()
+        .mlp_forward(
+            &mlp,
+            &Tensor::Host(p.clone()),
+            &Tensor::Host(vec![0.0; 6]),
+            false,
+        )
+        .unwrap_err();
     assert!(err.to_string().contains("host tensor"), "{err}");
 }

@@ -36,7 +36,9 @@ pub enum Activation {
     Relu,
     LeakyRelu(f32),
     /// `log(1 + exp(β z))/β`, overflow-safe (exactly `z` past `βz = 20`, as PyTorch's threshold).
-    Softplus { beta: f32 },
+    Softplus {
+        beta: f32,
+    },
     /// Overflow-safe logistic function.
     Sigmoid,
 }
@@ -111,11 +113,13 @@ impl Activation {
     fn check(&self) -> Result<(), BackendError> {
         match *self {
             Activation::Softplus { beta } if !(beta.is_finite() && beta > 0.0) => {
-                Err(BackendError::Config(format!("softplus beta must be positive and finite, got {beta}")))
+                Err(BackendError::Config(format!(
+                    "softplus beta must be positive and finite, got {beta}"
+                )))
             }
-            Activation::LeakyRelu(s) if !s.is_finite() => {
-                Err(BackendError::Config(format!("leaky ReLU slope must be finite, got {s}")))
-            }
+            Activation::LeakyRelu(s) if !s.is_finite() => Err(BackendError::Config(format!(
+                "leaky ReLU slope must be finite, got {s}"
+            ))),
             _ => Ok(()),
         }
     }
@@ -190,17 +194,25 @@ impl Mlp {
     pub fn new(config: MlpConfig) -> Result<Self, BackendError> {
         let c = &config;
         if c.in_dim == 0 || c.out_dim == 0 {
-            return Err(BackendError::Config(format!("MLP in_dim ({}) and out_dim ({}) must be > 0", c.in_dim, c.out_dim)));
+            return Err(BackendError::Config(format!(
+                "MLP in_dim ({}) and out_dim ({}) must be > 0",
+                c.in_dim, c.out_dim
+            )));
         }
         if let Some(i) = c.widths.iter().position(|&w| w == 0) {
-            return Err(BackendError::Config(format!("MLP hidden layer {i} has zero width")));
+            return Err(BackendError::Config(format!(
+                "MLP hidden layer {i} has zero width"
+            )));
         }
         c.activation.check()?;
         c.output_activation.check()?;
         let n_layers = c.widths.len() + 1;
         for &s in &c.skip_layers {
             if s == 0 || s >= n_layers {
-                return Err(BackendError::Config(format!("skip layer {s} must be in 1..={}", n_layers - 1)));
+                return Err(BackendError::Config(format!(
+                    "skip layer {s} must be in 1..={}",
+                    n_layers - 1
+                )));
             }
             if c.widths[s - 1] <= c.in_dim {
                 return Err(BackendError::Config(format!(
@@ -232,9 +244,23 @@ impl Mlp {
             let dense_w = dense;
             let dense_b = dense + in_dim * out_dim;
             dense = dense_b + out_dim;
-            layers.push(LayerLayout { in_dim, out_dim, w, g, b, skip: c.skip_layers.contains(&l), dense_w, dense_b });
+            layers.push(LayerLayout {
+                in_dim,
+                out_dim,
+                w,
+                g,
+                b,
+                skip: c.skip_layers.contains(&l),
+                dense_w,
+                dense_b,
+            });
         }
-        Ok(Self { config, layers, num_params: off, num_dense: dense })
+        Ok(Self {
+            config,
+            layers,
+            num_params: off,
+            num_dense: dense,
+        })
     }
 
     pub fn num_params(&self) -> usize {
@@ -293,7 +319,9 @@ impl Mlp {
             let (mean, std) = match init {
                 Init::Default => {
                     let gain = match self.act(l) {
-                        Activation::Relu | Activation::LeakyRelu(_) | Activation::Softplus { .. } => SQRT2,
+                        Activation::Relu
+                        | Activation::LeakyRelu(_)
+                        | Activation::Softplus { .. } => SQRT2,
                         _ => 1.0,
                     };
                     (0.0, gain / (lay.in_dim as f64).sqrt())
@@ -370,7 +398,19 @@ pub trait Real:
     /// `C = beta·C + A·B` with `A` `[m,k]` at strides `(rsa, csa)`, `B` `[k,n]` at `(rsb, csb)`
     /// and `C` `[m,n]` row-major (row stride `n`).
     #[allow(clippy::too_many_arguments)]
-    fn gemm(m: usize, k: usize, n: usize, a: &[Self], rsa: usize, csa: usize, b: &[Self], rsb: usize, csb: usize, beta: Self, c: &mut [Self]);
+    fn gemm(
+        m: usize,
+        k: usize,
+        n: usize,
+        a: &[Self],
+        rsa: usize,
+        csa: usize,
+        b: &[Self],
+        rsb: usize,
+        csb: usize,
+        beta: Self,
+        c: &mut [Self],
+    );
 }
 
 /// Check that a strided matrix lies inside its slice (the GEMMs below are `unsafe` calls).
@@ -412,8 +452,14 @@ macro_rules! impl_real {
                 beta: Self,
                 c: &mut [Self],
             ) {
-                assert!(strided_fits(a.len(), m, k, rsa, csa), "gemm: A out of bounds");
-                assert!(strided_fits(b.len(), k, n, rsb, csb), "gemm: B out of bounds");
+                assert!(
+                    strided_fits(a.len(), m, k, rsa, csa),
+                    "gemm: A out of bounds"
+                );
+                assert!(
+                    strided_fits(b.len(), k, n, rsb, csb),
+                    "gemm: B out of bounds"
+                );
                 assert!(c.len() >= m * n, "gemm: C out of bounds");
                 if m == 0 || n == 0 {
                     return;
@@ -495,7 +541,11 @@ fn forward_chunk<T: Real>(mlp: &Mlp, dense: &[T], x: &[T], keep: bool) -> (Vec<T
     let d = mlp.config.in_dim;
     let rows = x.len() / d;
     let s = T::from_f64(1.0 / SQRT2);
-    let mut chunk = CpuChunk { rows, u: Vec::new(), z: Vec::new() };
+    let mut chunk = CpuChunk {
+        rows,
+        u: Vec::new(),
+        z: Vec::new(),
+    };
     let mut h: Vec<T> = x.to_vec();
     for (l, lay) in mlp.layers.iter().enumerate() {
         let u = if lay.skip {
@@ -521,7 +571,19 @@ fn forward_chunk<T: Real>(mlp: &Mlp, dense: &[T], x: &[T], keep: bool) -> (Vec<T
             row.copy_from_slice(bias);
         }
         // z = u·Wᵀ + b: B(k, j) = W[j][k].
-        T::gemm(m, k, n, &u, k, 1, &dense[lay.dense_w..lay.dense_w + k * n], 1, k, T::one(), &mut z);
+        T::gemm(
+            m,
+            k,
+            n,
+            &u,
+            k,
+            1,
+            &dense[lay.dense_w..lay.dense_w + k * n],
+            1,
+            k,
+            T::one(),
+            &mut z,
+        );
         let act = mlp.act(l);
         let hn: Vec<T> = z.iter().map(|&v| act.forward(v)).collect();
         if keep {
@@ -535,13 +597,20 @@ fn forward_chunk<T: Real>(mlp: &Mlp, dense: &[T], x: &[T], keep: bool) -> (Vec<T
 
 /// cpu forward: `x` `[n, in_dim]` → output `[n, out_dim]`, plus the cache for [`cpu_backward`]
 /// when `keep` is set.
-pub fn cpu_forward<T: Real>(mlp: &Mlp, params: &[T], x: &[T], keep: bool) -> Result<(Vec<T>, CpuCache<T>), BackendError> {
+pub fn cpu_forward<T: Real>(
+    mlp: &Mlp,
+    params: &[T],
+    x: &[T],
+    keep: bool,
+) -> Result<(Vec<T>, CpuCache<T>), BackendError> {
     mlp.check_params(params.len())?;
     mlp.check_input(x.len())?;
     let dense = dense_params(mlp, params);
     let d = mlp.config.in_dim;
-    let parts: Vec<(Vec<T>, CpuChunk<T>)> =
-        x.par_chunks(CPU_CHUNK_ROWS * d).map(|xc| forward_chunk(mlp, &dense, xc, keep)).collect();
+    let parts: Vec<(Vec<T>, CpuChunk<T>)> = x
+        .par_chunks(CPU_CHUNK_ROWS * d)
+        .map(|xc| forward_chunk(mlp, &dense, xc, keep))
+        .collect();
     let mut out = Vec::with_capacity(x.len() / d * mlp.config.out_dim);
     let mut chunks = Vec::with_capacity(parts.len());
     for (o, c) in parts {
@@ -552,7 +621,14 @@ pub fn cpu_forward<T: Real>(mlp: &Mlp, params: &[T], x: &[T], keep: bool) -> Res
 }
 
 /// Backward of one chunk: accumulates dense parameter gradients into `dd`, writes `dx`.
-fn backward_chunk<T: Real>(mlp: &Mlp, dense: &[T], c: &CpuChunk<T>, dy: &[T], dx: &mut [T], dd: &mut [T]) {
+fn backward_chunk<T: Real>(
+    mlp: &Mlp,
+    dense: &[T],
+    c: &CpuChunk<T>,
+    dy: &[T],
+    dx: &mut [T],
+    dd: &mut [T],
+) {
     let rows = c.rows;
     let d = mlp.config.in_dim;
     let s = T::from_f64(1.0 / SQRT2);
@@ -560,13 +636,29 @@ fn backward_chunk<T: Real>(mlp: &Mlp, dense: &[T], c: &CpuChunk<T>, dy: &[T], dx
     let n_layers = mlp.layers.len();
     // dz of the last layer.
     let act = mlp.act(n_layers - 1);
-    let mut dz: Vec<T> = dy.iter().zip(&c.z[n_layers - 1]).map(|(&g, &z)| g * act.derivative(z)).collect();
+    let mut dz: Vec<T> = dy
+        .iter()
+        .zip(&c.z[n_layers - 1])
+        .map(|(&g, &z)| g * act.derivative(z))
+        .collect();
     for l in (0..n_layers).rev() {
         let lay = &mlp.layers[l];
         let (k, n) = (lay.in_dim, lay.out_dim);
         let u = &c.u[l];
         // dW += dzᵀ·u: A(i, r) = dz[r][i] → rsa 1, csa n.
-        T::gemm(n, rows, k, &dz, 1, n, u, k, 1, T::one(), &mut dd[lay.dense_w..lay.dense_w + n * k]);
+        T::gemm(
+            n,
+            rows,
+            k,
+            &dz,
+            1,
+            n,
+            u,
+            k,
+            1,
+            T::one(),
+            &mut dd[lay.dense_w..lay.dense_w + n * k],
+        );
         let db = &mut dd[lay.dense_b..lay.dense_b + n];
         for row in dz.chunks_exact(n) {
             for (a, &g) in db.iter_mut().zip(row) {
@@ -575,7 +667,19 @@ fn backward_chunk<T: Real>(mlp: &Mlp, dense: &[T], c: &CpuChunk<T>, dy: &[T], dx
         }
         // du = dz·W.
         let mut du = vec![T::zero(); rows * k];
-        T::gemm(rows, n, k, &dz, n, 1, &dense[lay.dense_w..lay.dense_w + n * k], k, 1, T::zero(), &mut du);
+        T::gemm(
+            rows,
+            n,
+            k,
+            &dz,
+            n,
+            1,
+            &dense[lay.dense_w..lay.dense_w + n * k],
+            k,
+            1,
+            T::zero(),
+            &mut du,
+        );
         if l == 0 {
             for (a, &g) in dx.iter_mut().zip(&du) {
                 *a += g;
@@ -599,7 +703,11 @@ fn backward_chunk<T: Real>(mlp: &Mlp, dense: &[T], c: &CpuChunk<T>, dy: &[T], dx
             du
         };
         let act = mlp.act(l - 1);
-        dz = dh.iter().zip(&c.z[l - 1]).map(|(&g, &z)| g * act.derivative(z)).collect();
+        dz = dh
+            .iter()
+            .zip(&c.z[l - 1])
+            .map(|(&g, &z)| g * act.derivative(z))
+            .collect();
     }
 }
 
@@ -632,11 +740,18 @@ fn dense_to_param_grads<T: Real>(mlp: &Mlp, params: &[T], dd: &[T]) -> Vec<T> {
 }
 
 /// cpu backward: given `dL/dy` `[n, out_dim]`, returns `(dL/dparams, dL/dx)`.
-pub fn cpu_backward<T: Real>(mlp: &Mlp, params: &[T], cache: &CpuCache<T>, dy: &[T]) -> Result<(Vec<T>, Vec<T>), BackendError> {
+pub fn cpu_backward<T: Real>(
+    mlp: &Mlp,
+    params: &[T],
+    cache: &CpuCache<T>,
+    dy: &[T],
+) -> Result<(Vec<T>, Vec<T>), BackendError> {
     mlp.check_params(params.len())?;
     let n: usize = cache.chunks.iter().map(|c| c.rows).sum();
     if cache.chunks.iter().any(|c| c.u.len() != mlp.layers.len()) {
-        return Err(BackendError::Shape("MLP backward needs a forward run with keep = true".into()));
+        return Err(BackendError::Shape(
+            "MLP backward needs a forward run with keep = true".into(),
+        ));
     }
     if dy.len() != n * mlp.config.out_dim {
         return Err(BackendError::Shape(format!(
@@ -732,10 +847,18 @@ struct GpuMlp<'a> {
 
 impl<'a> GpuMlp<'a> {
     fn new(ctx: &'a GpuContext) -> Self {
-        Self { ctx, src: shaders::with_lib(MLP_WGSL) }
+        Self {
+            ctx,
+            src: shaders::with_lib(MLP_WGSL),
+        }
     }
 
-    fn kernel(&self, entry: &str, reads: usize, rws: usize) -> Result<std::sync::Arc<crate::backend::gpu::Kernel>, BackendError> {
+    fn kernel(
+        &self,
+        entry: &str,
+        reads: usize,
+        rws: usize,
+    ) -> Result<std::sync::Arc<crate::backend::gpu::Kernel>, BackendError> {
         self.ctx.kernel("mlp", &self.src, entry, &spec(reads, rws))
     }
 
@@ -755,7 +878,12 @@ impl<'a> GpuMlp<'a> {
             (p.m as usize).div_ceil(GEMM_TILE) as u32,
             1,
         ];
-        b.dispatch(&k, Some(bytemuck::bytes_of(&p)), &[a.into(), bm.into(), bias.into(), c.into()], groups)
+        b.dispatch(
+            &k,
+            Some(bytemuck::bytes_of(&p)),
+            &[a.into(), bm.into(), bias.into(), c.into()],
+            groups,
+        )
     }
 
     fn elt(
@@ -769,7 +897,12 @@ impl<'a> GpuMlp<'a> {
     ) -> Result<(), BackendError> {
         let k = self.kernel(entry, reads.len(), rws.len())?;
         let binds: Vec<Bind<'_>> = reads.iter().chain(rws).map(|&x| x.into()).collect();
-        b.dispatch(&k, Some(bytemuck::bytes_of(&p)), &binds, groups_1d(threads, 256))
+        b.dispatch(
+            &k,
+            Some(bytemuck::bytes_of(&p)),
+            &binds,
+            groups_1d(threads, 256),
+        )
     }
 }
 
@@ -811,10 +944,17 @@ pub struct MlpGrads {
 }
 
 fn u32_of(v: usize, what: &str) -> Result<u32, BackendError> {
-    u32::try_from(v).map_err(|_| BackendError::Shape(format!("{what} ({v}) exceeds the GPU's u32 indexing")))
+    u32::try_from(v)
+        .map_err(|_| BackendError::Shape(format!("{what} ({v}) exceeds the GPU's u32 indexing")))
 }
 
-fn gpu_forward(ctx: &GpuContext, mlp: &Mlp, params: &GpuBuffer, x: &GpuBuffer, keep: bool) -> Result<MlpForward, BackendError> {
+fn gpu_forward(
+    ctx: &GpuContext,
+    mlp: &Mlp,
+    params: &GpuBuffer,
+    x: &GpuBuffer,
+    keep: bool,
+) -> Result<MlpForward, BackendError> {
     mlp.check_params(params.len)?;
     let rows = mlp.check_input(x.len)?;
     let g = GpuMlp::new(ctx);
@@ -846,7 +986,14 @@ fn gpu_forward(ctx: &GpuContext, mlp: &Mlp, params: &GpuBuffer, x: &GpuBuffer, k
         let u: GpuBuffer = if lay.skip {
             let u = ctx.zeros_f32("mlp u", rows * k);
             let h = h_prev.as_ref().expect("a skip layer is never layer 0");
-            let p = EltParams { n: (rows * k) as u32, rows: rows as u32, a: (k - d) as u32, d: d as u32, scale: s, ..Default::default() };
+            let p = EltParams {
+                n: (rows * k) as u32,
+                rows: rows as u32,
+                a: (k - d) as u32,
+                d: d as u32,
+                scale: s,
+                ..Default::default()
+            };
             g.elt(&mut batch, "concat_fwd", p, &[h, x], &[&u], rows * k)?;
             u
         } else if l == 0 {
@@ -881,7 +1028,12 @@ fn gpu_forward(ctx: &GpuContext, mlp: &Mlp, params: &GpuBuffer, x: &GpuBuffer, k
         g.gemm(&mut batch, gp, &u, wbuf, params, &z)?;
         let h = ctx.zeros_f32("mlp h", rows * n);
         let (kind, pp) = mlp.act(l).code();
-        let ep = EltParams { n: (rows * n) as u32, kind, p: pp, ..Default::default() };
+        let ep = EltParams {
+            n: (rows * n) as u32,
+            kind,
+            p: pp,
+            ..Default::default()
+        };
         g.elt(&mut batch, "act_fwd", ep, &[&z], &[&h], rows * n)?;
         if keep {
             us.push(u);
@@ -891,25 +1043,46 @@ fn gpu_forward(ctx: &GpuContext, mlp: &Mlp, params: &GpuBuffer, x: &GpuBuffer, k
     }
     batch.submit()?;
     let output = Tensor::Device(h_prev.expect("at least one layer"));
-    let cache = if keep { MlpCache::Gpu(GpuCache { weights, u: us, z: zs, rows }) } else { MlpCache::None };
-    Ok(MlpForward { output, rows, cache })
+    let cache = if keep {
+        MlpCache::Gpu(GpuCache {
+            weights,
+            u: us,
+            z: zs,
+            rows,
+        })
+    } else {
+        MlpCache::None
+    };
+    Ok(MlpForward {
+        output,
+        rows,
+        cache,
+    })
 }
 
-fn gpu_backward(ctx: &GpuContext, mlp: &Mlp, params: &GpuBuffer, c: &GpuCache, dy: &GpuBuffer) -> Result<MlpGrads, BackendError> {
+fn gpu_backward(
+    ctx: &GpuContext,
+    mlp: &Mlp,
+    params: &GpuBuffer,
+    c: &GpuCache,
+    dy: &GpuBuffer,
+) -> Result<MlpGrads, BackendError> {
     mlp.check_params(params.len)?;
     let rows = c.rows;
     if dy.len != rows * mlp.config.out_dim {
         return Err(BackendError::Shape(format!(
             "MLP backward: dL/dy has {} values, expected {rows} x {}",
-            dy.len,
-            mlp.config.out_dim
+            dy.len, mlp.config.out_dim
         )));
     }
     let g = GpuMlp::new(ctx);
     let d = mlp.config.in_dim;
     let s = (1.0 / SQRT2) as f32;
     let grads = ctx.zeros_f32("mlp grads", mlp.num_params);
-    let dense_grads = c.weights.as_ref().map(|_| ctx.zeros_f32("mlp dense grads", mlp.num_dense));
+    let dense_grads = c
+        .weights
+        .as_ref()
+        .map(|_| ctx.zeros_f32("mlp dense grads", mlp.num_dense));
     let dx = ctx.zeros_f32("mlp dx", rows * d);
     let mut batch = ctx.batch("mlp_backward");
     let n_layers = mlp.layers.len();
@@ -925,7 +1098,12 @@ fn gpu_backward(ctx: &GpuContext, mlp: &Mlp, params: &GpuBuffer, c: &GpuCache, d
         let (k, n) = (lay.in_dim, lay.out_dim);
         let dz = ctx.zeros_f32("mlp dz", rows * n);
         let (kind, pp) = mlp.act(l).code();
-        let ep = EltParams { n: (rows * n) as u32, kind, p: pp, ..Default::default() };
+        let ep = EltParams {
+            n: (rows * n) as u32,
+            kind,
+            p: pp,
+            ..Default::default()
+        };
         g.elt(&mut batch, "act_bwd", ep, &[&c.z[l], &dh], &[&dz], rows * n)?;
         // dW = dzᵀ·u into the weight gradient (dense buffer with weight norm).
         let (gw, gw_off) = match &dense_grads {
@@ -949,14 +1127,23 @@ fn gpu_backward(ctx: &GpuContext, mlp: &Mlp, params: &GpuBuffer, c: &GpuCache, d
             _pad: [0; 3],
         };
         g.gemm(&mut batch, p, &dz, &c.u[l], &dz, gw)?;
-        let ep = EltParams { rows: rows as u32, cols: n as u32, off0: lay.b as u32, ..Default::default() };
+        let ep = EltParams {
+            rows: rows as u32,
+            cols: n as u32,
+            off0: lay.b as u32,
+            ..Default::default()
+        };
         g.elt(&mut batch, "bias_grad", ep, &[&dz], &[&grads], n)?;
         // du = dz·W.
         let (wbuf, w_off) = match &c.weights {
             Some(w) => (w, lay.dense_w),
             None => (params, lay.w),
         };
-        let target = if l == 0 { None } else { Some(ctx.zeros_f32("mlp du", rows * k)) };
+        let target = if l == 0 {
+            None
+        } else {
+            Some(ctx.zeros_f32("mlp du", rows * k))
+        };
         let p = GemmParams {
             m: rows as u32,
             n: k as u32,
@@ -1010,17 +1197,33 @@ fn gpu_backward(ctx: &GpuContext, mlp: &Mlp, params: &GpuBuffer, c: &GpuCache, d
                 off2: lay.dense_w as u32,
                 ..Default::default()
             };
-            g.elt(&mut batch, "wn_bwd", p, &[params, dg], &[&grads], lay.out_dim)?;
+            g.elt(
+                &mut batch,
+                "wn_bwd",
+                p,
+                &[params, dg],
+                &[&grads],
+                lay.out_dim,
+            )?;
         }
     }
     batch.submit()?;
-    Ok(MlpGrads { d_params: Tensor::Device(grads), d_input: Tensor::Device(dx) })
+    Ok(MlpGrads {
+        d_params: Tensor::Device(grads),
+        d_input: Tensor::Device(dx),
+    })
 }
 
 impl Backend {
     /// MLP forward on `x` `[n, in_dim]`. With `keep`, the result holds what
     /// [`Backend::mlp_backward`] needs.
-    pub fn mlp_forward(&self, mlp: &Mlp, params: &Tensor, x: &Tensor, keep: bool) -> Result<MlpForward, BackendError> {
+    pub fn mlp_forward(
+        &self,
+        mlp: &Mlp,
+        params: &Tensor,
+        x: &Tensor,
+        keep: bool,
+    ) -> Result<MlpForward, BackendError> {
         match self {
             Backend::Cpu(_) => {
                 let (out, cache) = cpu_forward(mlp, params.host()?, x.host()?, keep)?;
@@ -1028,7 +1231,11 @@ impl Backend {
                 Ok(MlpForward {
                     output: Tensor::Host(out),
                     rows,
-                    cache: if keep { MlpCache::Cpu(cache) } else { MlpCache::None },
+                    cache: if keep {
+                        MlpCache::Cpu(cache)
+                    } else {
+                        MlpCache::None
+                    },
                 })
             }
             Backend::Gpu(g) => gpu_forward(g, mlp, params.device()?, x.device()?, keep),
@@ -1036,15 +1243,30 @@ impl Backend {
     }
 
     /// MLP backward: `dL/dy` `[n, out_dim]` → parameter and input gradients.
-    pub fn mlp_backward(&self, mlp: &Mlp, params: &Tensor, fwd: &MlpForward, d_out: &Tensor) -> Result<MlpGrads, BackendError> {
+    pub fn mlp_backward(
+        &self,
+        mlp: &Mlp,
+        params: &Tensor,
+        fwd: &MlpForward,
+        d_out: &Tensor,
+    ) -> Result<MlpGrads, BackendError> {
         match (self, &fwd.cache) {
             (Backend::Cpu(_), MlpCache::Cpu(c)) => {
                 let (dp, dx) = cpu_backward(mlp, params.host()?, c, d_out.host()?)?;
-                Ok(MlpGrads { d_params: Tensor::Host(dp), d_input: Tensor::Host(dx) })
+                Ok(MlpGrads {
+                    d_params: Tensor::Host(dp),
+                    d_input: Tensor::Host(dx),
+                })
             }
-            (Backend::Gpu(g), MlpCache::Gpu(c)) => gpu_backward(g, mlp, params.device()?, c, d_out.device()?),
-            (_, MlpCache::None) => Err(BackendError::Shape("MLP backward needs a forward run with keep = true".into())),
-            _ => Err(BackendError::Shape("MLP backward on a different backend than its forward".into())),
+            (Backend::Gpu(g), MlpCache::Gpu(c)) => {
+                gpu_backward(g, mlp, params.device()?, c, d_out.device()?)
+            }
+            (_, MlpCache::None) => Err(BackendError::Shape(
+                "MLP backward needs a forward run with keep = true".into(),
+            )),
+            _ => Err(BackendError::Shape(
+                "MLP backward on a different backend than its forward".into(),
+            )),
         }
     }
 }
@@ -1085,7 +1307,13 @@ mod tests {
         c.activation = Activation::Softplus { beta: 100.0 };
         c.out_dim = 1;
         let m = Mlp::new(c).unwrap();
-        let p = m.init(Init::Geometric { radius: 0.5, raw_dims: 3 }, 7);
+        let p = m.init(
+            Init::Geometric {
+                radius: 0.5,
+                raw_dims: 3,
+            },
+            7,
+        );
         let x: Vec<f32> = vec![0.0, 0.0, 0.0, 0.9, 0.0, 0.0, 0.0, -0.5, 0.0];
         let (y, _) = cpu_forward(&m, &p, &x, false).unwrap();
         // Roughly |x| - r: negative inside, positive outside, near zero on the sphere.
