@@ -233,8 +233,8 @@ fn activations_are_overflow_safe() {
     }
     let sp = Activation::Softplus { beta: 100.0 };
     assert_eq!(sp.forward(1e30f32), 1e30);
-    assert_eq!(sp.forward(-1e30f32), 0.0);
-    assert_eq!(Activation::Sigmoid.forward(-1e30f32), 0.0);
+    assert!(sp.forward(-1e30f32) < 1e-30);
+    assert!(Activation::Sigmoid.forward(-1e30f32) < 1e-30);
     assert_eq!(Activation::Sigmoid.forward(1e30f32), 1.0);
 }
 

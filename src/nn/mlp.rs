@@ -68,16 +68,7 @@ impl Activation {
                     T::from_f64(s as f64) * z
                 }
             }
-            Activation::Softplus { beta } => {
-                let b = T::from_f64(beta as f64);
-                let y = b * z;
-                // Past βz = 20 softplus equals z to f32 precision (and β·z may overflow).
-                if y > T::from_f64(20.0) {
-                    z
-                } else {
-                    (y.max_(zero) + (-y.abs_()).exp_().ln_1p_()) / b
-                }
-            }
+            Activation::Softplus { beta } => softplus(z, T::from_f64(beta as f64)),
             Activation::Sigmoid => sigmoid(z),
         }
     }
@@ -110,6 +101,51 @@ impl Activation {
         }
     }
 
+    /// `act(z)` over a slice; the match is outside the loops so each loop vectorises.
+    pub fn forward_slice<T: Real>(&self, z: &[T]) -> Vec<T> {
+        let zero = T::zero();
+        match *self {
+            Activation::None => z.to_vec(),
+            Activation::Relu => z.iter().map(|&v| v.max_(zero)).collect(),
+            Activation::LeakyRelu(s) => {
+                let s = T::from_f64(s as f64);
+                z.iter()
+                    .map(|&v| if v > zero { v } else { s * v })
+                    .collect()
+            }
+            Activation::Softplus { beta } => {
+                let b = T::from_f64(beta as f64);
+                z.iter().map(|&v| softplus(v, b)).collect()
+            }
+            Activation::Sigmoid => z.iter().map(|&v| sigmoid(v)).collect(),
+        }
+    }
+
+    /// `dh · act'(z)` over slices (the backward of [`Activation::forward_slice`]).
+    pub fn backward_slice<T: Real>(&self, z: &[T], dh: &[T]) -> Vec<T> {
+        let (zero, one) = (T::zero(), T::one());
+        let it = z.iter().zip(dh);
+        match *self {
+            Activation::None => dh.to_vec(),
+            Activation::Relu => it.map(|(&v, &g)| if v > zero { g } else { zero }).collect(),
+            Activation::LeakyRelu(s) => {
+                let s = T::from_f64(s as f64);
+                it.map(|(&v, &g)| if v > zero { g } else { s * g })
+                    .collect()
+            }
+            Activation::Softplus { beta } => {
+                let b = T::from_f64(beta as f64);
+                it.map(|(&v, &g)| g * sigmoid(b * v)).collect()
+            }
+            Activation::Sigmoid => it
+                .map(|(&v, &g)| {
+                    let s = sigmoid(v);
+                    g * s * (one - s)
+                })
+                .collect(),
+        }
+    }
+
     fn check(&self) -> Result<(), BackendError> {
         match *self {
             Activation::Softplus { beta } if !(beta.is_finite() && beta > 0.0) => {
@@ -125,13 +161,23 @@ impl Activation {
     }
 }
 
+/// `1/(1 + e^{-z})`: overflow-safe without branches (f32's `exp_` clamps its argument; f64's
+/// `exp` → ∞ gives 0).
+#[inline(always)]
 fn sigmoid<T: Real>(z: T) -> T {
-    let one = T::one();
-    if z >= T::zero() {
-        one / (one + (-z).exp_())
+    T::one() / (T::one() + (-z).exp_())
+}
+
+#[inline(always)]
+fn softplus<T: Real>(z: T, beta: T) -> T {
+    let y = beta * z;
+    let sp = (y.max_(T::zero()) + (-y.abs_()).exp_().ln_1p_()) / beta;
+    // Past βz = 20 softplus equals z to f32 precision (and β·z may overflow): a select, so
+    // the loop still vectorises.
+    if y > T::from_f64(20.0) {
+        z
     } else {
-        let e = z.exp_();
-        e / (one + e)
+        sp
     }
 }
 
@@ -390,7 +436,9 @@ pub trait Real:
     fn one() -> Self {
         Self::from_f64(1.0)
     }
+    /// `exp` (f32: a vectorisable polynomial with a clamped argument, see [`exp_f32`]).
     fn exp_(self) -> Self;
+    /// `ln(1 + x)` for `x` ≥ 0 (f32: vectorisable polynomial).
     fn ln_1p_(self) -> Self;
     fn abs_(self) -> Self;
     fn max_(self, o: Self) -> Self;
@@ -418,17 +466,102 @@ fn strided_fits(len: usize, rows: usize, cols: usize, rs: usize, cs: usize) -> b
     rows == 0 || cols == 0 || (rows - 1) * rs + (cols - 1) * cs < len
 }
 
+/// Branch-free f32 `exp` (Cephes `expf` polynomial, ~1 ulp) that vectorises; the argument is
+/// clamped to [-87.3, 88.3] so the result is always finite and normal.
+#[inline(always)]
+fn exp_f32(x: f32) -> f32 {
+    let x = x.clamp(-87.3, 88.3);
+    // floor(x·log2 e + ½) by truncation of a positive number (x ≥ −87.3): no libm call.
+    let n = ((x * std::f32::consts::LOG2_E + 0.5 + 128.0) as i32 - 128) as f32;
+    let r = x - n * 0.693_359_4 - n * -2.121_944_4e-4;
+    let mut p = 1.987_569_1e-4f32;
+    p = p * r + 1.398_199_9e-3;
+    p = p * r + 8.333_452e-3;
+    p = p * r + 4.166_579_6e-2;
+    p = p * r + 1.666_666_5e-1;
+    p = p * r + 5.000_000_1e-1;
+    let e = p * r * r + r + 1.0;
+    e * f32::from_bits(((n as i32 + 127) as u32) << 23)
+}
+
+/// Branch-free f32 `ln` for normal positive `u` (Cephes `logf` polynomial, ~1 ulp).
+#[inline(always)]
+fn ln_f32(u: f32) -> f32 {
+    let bits = u.to_bits();
+    let mut k = ((bits >> 23) as i32 - 127) as f32;
+    // Mantissa in [1, 2); fold to [√½, √2).
+    let mut m = f32::from_bits((bits & 0x007f_ffff) | 0x3f80_0000);
+    let big = m > std::f32::consts::SQRT_2;
+    m = if big { 0.5 * m } else { m };
+    k = if big { k + 1.0 } else { k };
+    let x = m - 1.0;
+    let z = x * x;
+    let mut p = 7.037_683_6e-2f32;
+    for c in [
+        -1.151_461e-1,
+        1.167_699_9e-1,
+        -1.242_014_1e-1,
+        1.424_932_3e-1,
+        -1.666_805_8e-1,
+        2.000_071_4e-1,
+        -2.499_999_4e-1,
+        3.333_333e-1,
+    ] {
+        p = p * x + c;
+    }
+    let mut y = x * z * p;
+    y += k * -2.121_944_4e-4;
+    y += -0.5 * z;
+    x + y + k * 0.693_359_4
+}
+
+/// `ln(1 + e)` for `e` ≥ 0 without the cancellation of `ln(1 + e)` at small `e`.
+#[inline(always)]
+fn ln_1p_f32(e: f32) -> f32 {
+    let u = 1.0 + e;
+    let d = u - 1.0;
+    // ln(u)·e/(u − 1) corrects the rounding of 1 + e (Goldberg); u == 1 means ln1p(e) ≈ e.
+    if d == 0.0 {
+        e
+    } else {
+        ln_f32(u) * (e / d)
+    }
+}
+
+trait StdMath {
+    fn exp_std(self) -> Self;
+    fn ln_1p_std(self) -> Self;
+}
+impl StdMath for f64 {
+    fn exp_std(self) -> Self {
+        self.exp()
+    }
+    fn ln_1p_std(self) -> Self {
+        self.ln_1p()
+    }
+}
+impl StdMath for f32 {
+    fn exp_std(self) -> Self {
+        exp_f32(self)
+    }
+    fn ln_1p_std(self) -> Self {
+        ln_1p_f32(self)
+    }
+}
+
 macro_rules! impl_real {
     ($t:ty, $gemm:path) => {
         impl Real for $t {
             fn from_f64(v: f64) -> Self {
                 v as $t
             }
+            #[inline(always)]
             fn exp_(self) -> Self {
-                self.exp()
+                self.exp_std()
             }
+            #[inline(always)]
             fn ln_1p_(self) -> Self {
-                self.ln_1p()
+                self.ln_1p_std()
             }
             fn abs_(self) -> Self {
                 self.abs()
@@ -585,7 +718,7 @@ fn forward_chunk<T: Real>(mlp: &Mlp, dense: &[T], x: &[T], keep: bool) -> (Vec<T
             &mut z,
         );
         let act = mlp.act(l);
-        let hn: Vec<T> = z.iter().map(|&v| act.forward(v)).collect();
+        let hn: Vec<T> = act.forward_slice(&z);
         if keep {
             chunk.u.push(u);
             chunk.z.push(z);
@@ -636,11 +769,7 @@ fn backward_chunk<T: Real>(
     let n_layers = mlp.layers.len();
     // dz of the last layer.
     let act = mlp.act(n_layers - 1);
-    let mut dz: Vec<T> = dy
-        .iter()
-        .zip(&c.z[n_layers - 1])
-        .map(|(&g, &z)| g * act.derivative(z))
-        .collect();
+    let mut dz: Vec<T> = act.backward_slice(&c.z[n_layers - 1], dy);
     for l in (0..n_layers).rev() {
         let lay = &mlp.layers[l];
         let (k, n) = (lay.in_dim, lay.out_dim);
@@ -703,11 +832,7 @@ fn backward_chunk<T: Real>(
             du
         };
         let act = mlp.act(l - 1);
-        dz = dh
-            .iter()
-            .zip(&c.z[l - 1])
-            .map(|(&g, &z)| g * act.derivative(z))
-            .collect();
+        dz = act.backward_slice(&c.z[l - 1], &dh);
     }
 }
 
@@ -1285,6 +1410,32 @@ mod tests {
             skip_layers: vec![2],
             weight_norm: true,
         }
+    }
+
+    #[test]
+    fn fast_f32_exp_and_ln_1p_match_std() {
+        let mut worst = (0f64, 0f64);
+        for i in 0..200_001 {
+            let x = -87.0 + 175.0 * i as f32 / 200_000.0;
+            let rel = ((exp_f32(x) as f64 - (x as f64).exp()) / (x as f64).exp()).abs();
+            worst.0 = worst.0.max(rel);
+            let e = (i as f32 / 200_000.0).powi(3) * 1.0;
+            let want = (e as f64).ln_1p();
+            let err = (ln_1p_f32(e) as f64 - want).abs() / want.max(1e-30);
+            worst.1 = worst.1.max(if e == 0.0 {
+                ln_1p_f32(e).abs() as f64
+            } else {
+                err
+            });
+        }
+        assert!(
+            worst.0 < 4e-7 && worst.1 < 4e-7,
+            "worst relative errors exp {:e}, ln_1p {:e}",
+            worst.0,
+            worst.1
+        );
+        assert!(exp_f32(1e30).is_finite() && exp_f32(-1e30) >= 0.0);
+        assert!(exp_f32(f32::INFINITY).is_finite());
     }
 
     #[test]
