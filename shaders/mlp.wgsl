@@ -6,6 +6,8 @@
 // Mirrors GemmParams (64 bytes):
 // C[c_off + i*ldc + j] = (acc ? C : 0) + sum_k A[a_off + i*rsa + k*csa] * B[b_off + k*rsb + j*csb]
 //                        (+ bias[bias_off + j] when flags & 1; acc = flags & 2).
+// Split-K (k_split > 0): workgroup z sums k in [z*k_split, (z+1)*k_split) and writes its partial
+// product at c_off + z*m*ldc; split_reduce adds the partials.
 struct GemmParams {
     m: u32,
     n: u32,
@@ -20,7 +22,7 @@ struct GemmParams {
     ldc: u32,
     bias_off: u32,
     flags: u32,
-    _pad0: u32,
+    k_split: u32,
     _pad1: u32,
     _pad2: u32,
 };
@@ -62,7 +64,15 @@ fn gemm(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid
     let tid = lid.y * 16u + lid.x;
     var acc: array<f32, 16>;
     for (var i = 0u; i < 16u; i++) { acc[i] = 0.0; }
-    for (var k0 = 0u; k0 < gp.k; k0 += TK) {
+    var k_begin = 0u;
+    var k_end = gp.k;
+    var c_base = gp.c_off;
+    if (gp.k_split > 0u) {
+        k_begin = wid.z * gp.k_split;
+        k_end = min(gp.k, k_begin + gp.k_split);
+        c_base = gp.c_off + wid.z * gp.m * gp.ldc;
+    }
+    for (var k0 = k_begin; k0 < k_end; k0 += TK) {
         for (var t = 0u; t < 4u; t++) {
             let e = tid + t * 256u;
             let kk = e / TILE;
@@ -70,11 +80,11 @@ fn gemm(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid
             let gk = k0 + kk;
             var va = 0.0;
             let gr = row0 + r;
-            if (gr < gp.m && gk < gp.k) { va = ga[gp.a_off + gr * gp.rsa + gk * gp.csa]; }
+            if (gr < gp.m && gk < k_end) { va = ga[gp.a_off + gr * gp.rsa + gk * gp.csa]; }
             tile_a[kk * TILE + r] = va;
             var vb = 0.0;
             let gcol = col0 + r;
-            if (gcol < gp.n && gk < gp.k) { vb = gb[gp.b_off + gk * gp.rsb + gcol * gp.csb]; }
+            if (gcol < gp.n && gk < k_end) { vb = gb[gp.b_off + gk * gp.rsb + gcol * gp.csb]; }
             tile_b[kk * TILE + r] = vb;
         }
         workgroupBarrier();
@@ -101,7 +111,7 @@ fn gemm(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid
             if (c >= gp.n) { continue; }
             var v = acc[i * 4u + j];
             if ((gp.flags & 1u) != 0u) { v += gbias[gp.bias_off + c]; }
-            let idx = gp.c_off + r * gp.ldc + c;
+            let idx = c_base + r * gp.ldc + c;
             if ((gp.flags & 2u) != 0u) { v += gc[idx]; }
             gc[idx] = v;
         }
@@ -191,6 +201,18 @@ fn concat_bwd(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgr
         let j = r * ep.d + c - ep.a;
         e_out2[j] = e_out2[j] + v;
     }
+}
+
+// out[off0 + i] = (kind == 1 ? out[off0 + i] : 0) + sum_s part[s * n + i], s < rows (the
+// split-K partial products). Reads n, rows, off0, kind. Bindings: 1 part, 2 out.
+@compute @workgroup_size(256)
+fn split_reduce(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
+    let i = linear_index(gid, nwg, 256u);
+    if (i >= ep.n) { return; }
+    var s = 0.0;
+    if (ep.kind == 1u) { s = e_out1[ep.off0 + i]; }
+    for (var k = 0u; k < ep.rows; k++) { s += e_in0[k * ep.n + i]; }
+    e_out1[ep.off0 + i] = s;
 }
 
 // grads[off0 + j] = sum_r dz[r, j], dz is [rows, cols]. One thread per column.

@@ -215,6 +215,17 @@ fn wgsl_matches_cpu_forward_and_backward() {
         weight_norm: true,
     };
     check_gpu(&g, big, 150, "multi-tile");
+    // A batch long enough that dW = dZᵀ·U is split over K (partials + split_reduce).
+    let long = MlpConfig {
+        in_dim: 4,
+        widths: vec![24],
+        out_dim: 3,
+        activation: Activation::Sigmoid,
+        output_activation: Activation::None,
+        skip_layers: vec![],
+        weight_norm: true,
+    };
+    check_gpu(&g, long, 3001, "split-K");
 }
 
 #[test]

@@ -932,7 +932,10 @@ pub struct GemmParams {
     pub bias_off: u32,
     /// bit 0: add bias; bit 1: accumulate into C.
     pub flags: u32,
-    pub _pad: [u32; 3],
+    /// Split-K: when > 0, workgroup z handles `k` range `[z·k_split, (z+1)·k_split)` and writes
+    /// its partial product at `c_off + z·m·ldc` (summed afterwards by `split_reduce`).
+    pub k_split: u32,
+    pub _pad: [u32; 2],
 }
 const _: () = assert!(std::mem::size_of::<GemmParams>() == 64);
 
@@ -958,6 +961,9 @@ const _: () = assert!(std::mem::size_of::<EltParams>() == 48);
 
 /// GEMM output tile (rows and columns per workgroup) in `shaders/mlp.wgsl`.
 const GEMM_TILE: usize = 64;
+/// Split-K: at least this many K per split, at most [`MAX_SPLITS`] splits.
+const SPLIT_K_MIN: usize = 1024;
+const MAX_SPLITS: usize = 64;
 
 fn spec(n_storage_read: usize, n_rw: usize) -> KernelSpec {
     let mut v = vec![Access::Read; n_storage_read];
@@ -998,16 +1004,44 @@ impl<'a> GpuMlp<'a> {
         c: &GpuBuffer,
     ) -> Result<(), BackendError> {
         let k = self.kernel("gemm", 3, 1)?;
-        let groups = [
-            (p.n as usize).div_ceil(GEMM_TILE) as u32,
-            (p.m as usize).div_ceil(GEMM_TILE) as u32,
-            1,
-        ];
+        let tiles_n = (p.n as usize).div_ceil(GEMM_TILE);
+        let tiles_m = (p.m as usize).div_ceil(GEMM_TILE);
+        // A long reduction (dW = dZᵀ·U over the batch) on few output tiles: split K over
+        // workgroups (z) into partial products, then sum them.
+        let splits = (p.k as usize / SPLIT_K_MIN)
+            .min(MAX_SPLITS)
+            .min(256 / (tiles_n * tiles_m).max(1));
+        if splits >= 2 && p.ldc == p.n && p.flags & 1 == 0 && p.k_split == 0 {
+            let k_split = (p.k as usize).div_ceil(splits).div_ceil(16) * 16;
+            let splits = (p.k as usize).div_ceil(k_split);
+            let mn = p.m as usize * p.n as usize;
+            let partial = self.ctx.zeros_f32("mlp split-k partials", splits * mn);
+            let sp = GemmParams {
+                c_off: 0,
+                flags: 0,
+                k_split: k_split as u32,
+                ..p
+            };
+            b.dispatch(
+                &k,
+                Some(bytemuck::bytes_of(&sp)),
+                &[a.into(), bm.into(), bias.into(), (&partial).into()],
+                [tiles_n as u32, tiles_m as u32, splits as u32],
+            )?;
+            let ep = EltParams {
+                n: u32_of(mn, "GEMM output")?,
+                rows: splits as u32,
+                off0: p.c_off,
+                kind: (p.flags & 2 != 0) as u32,
+                ..Default::default()
+            };
+            return self.elt(b, "split_reduce", ep, &[&partial], &[c], mn);
+        }
         b.dispatch(
             &k,
             Some(bytemuck::bytes_of(&p)),
             &[a.into(), bm.into(), bias.into(), c.into()],
-            groups,
+            [tiles_n as u32, tiles_m as u32, 1],
         )
     }
 
@@ -1148,7 +1182,8 @@ fn gpu_forward(
             ldc: n as u32,
             bias_off: lay.b as u32,
             flags: 1,
-            _pad: [0; 3],
+            k_split: 0,
+            _pad: [0; 2],
         };
         g.gemm(&mut batch, gp, &u, wbuf, params, &z)?;
         let h = ctx.zeros_f32("mlp h", rows * n);
@@ -1249,7 +1284,8 @@ fn gpu_backward(
             ldc: k as u32,
             bias_off: 0,
             flags: 0,
-            _pad: [0; 3],
+            k_split: 0,
+            _pad: [0; 2],
         };
         g.gemm(&mut batch, p, &dz, &c.u[l], &dz, gw)?;
         let ep = EltParams {
@@ -1283,7 +1319,8 @@ fn gpu_backward(
             ldc: k as u32,
             bias_off: 0,
             flags: if l == 0 && dx_written { 2 } else { 0 },
-            _pad: [0; 3],
+            k_split: 0,
+            _pad: [0; 2],
         };
         match &target {
             None => {
