@@ -197,7 +197,7 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
     let mut rows: Vec<Row> = Vec::new();
     let mut notes = serde_json::Map::new();
     ctx.say(format!(
-        "{:<6} {:<44} {:>8} {:>14} {:>9} {:>14} {:>9}",
+        "{:<6} {:<60} {:>8} {:>14} {:>9} {:>14} {:>9}",
         "net", "backend", "batch", "fwd pts/s", "GFLOP/s", "fwd+bwd pts/s", "GFLOP/s"
     ));
     for name in &args.networks {
@@ -212,7 +212,7 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
             let software = b.gpu().is_some_and(|g| g.is_software());
             for &batch in &args.batches {
                 if software && batch > args.software_max_batch {
-                    ctx.say(format!("{name:<6} {:<44} {batch:>8} skipped (software adapter; --software-max-batch)", b.describe()));
+                    ctx.say(format!("{name:<6} {:<60} {batch:>8} skipped (software adapter; --software-max-batch)", b.describe()));
                     continue;
                 }
                 let (tf, tfb) = time_mlp(b, &mlp, batch, args.cpu_sub_batch, args.iters)
@@ -229,7 +229,7 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
                     forward_backward_gflops: 3.0 * flops * batch as f64 / tfb / 1e9,
                 };
                 ctx.say(format!(
-                    "{:<6} {:<44} {:>8} {:>14.3e} {:>9.1} {:>14.3e} {:>9.1}",
+                    "{:<6} {:<60} {:>8} {:>14.3e} {:>9.1} {:>14.3e} {:>9.1}",
                     name,
                     row.device,
                     batch,
