@@ -346,3 +346,55 @@ fn bad_configs_and_shapes_are_errors() {
         .unwrap_err();
     assert!(err.to_string().contains("host tensor"), "{err}");
 }
+
+#[test]
+fn bench_nn_writes_its_json() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("nn.json");
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_pii-bake"))
+        .args([
+            "--backend",
+            "cpu",
+            "bench",
+            "nn",
+            "--batches",
+            "64,100",
+            "--iters",
+            "1",
+            "--gemm-rows",
+            "256",
+        ])
+        .args(["--networks", "fast", "--cpu-sub-batch", "64", "--out"])
+        .arg(&out)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&out).unwrap()).unwrap();
+    let rows = v["results"].as_array().unwrap();
+    assert_eq!(rows.len(), 2);
+    for r in rows {
+        assert_eq!(r["network"], "fast");
+        assert!(r["forward_points_per_s"].as_f64().unwrap() > 0.0);
+        assert!(r["forward_backward_gflops"].as_f64().unwrap() > 0.0);
+    }
+    assert!(v["gemm_reference_gflops"].as_f64().unwrap() > 0.0);
+    assert_eq!(v["cpu_vs_gemm_reference"].as_array().unwrap().len(), 2);
+    // A bad network name is an error, not a panic.
+    let st = std::process::Command::new(env!("CARGO_BIN_EXE_pii-bake"))
+        .args([
+            "--backend",
+            "cpu",
+            "bench",
+            "nn",
+            "--networks",
+            "huge",
+            "--gemm-rows",
+            "16",
+            "--out",
+        ])
+        .arg(dir.path().join("x.json"))
+        .output()
+        .unwrap();
+    assert_eq!(st.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&st.stderr).contains("unknown network"));
+}

@@ -37,6 +37,9 @@ pub struct BenchNnArgs {
     /// for the backward; a trainer would do the same).
     #[arg(long, default_value_t = 8192)]
     pub cpu_sub_batch: usize,
+    /// Rows of the GEMM reference (`[rows, 512]·[512, 512]`).
+    #[arg(long, default_value_t = 16384)]
+    pub gemm_rows: usize,
     /// Largest batch run on a software adapter (lavapipe); larger ones are skipped.
     #[arg(long, default_value_t = 4096)]
     pub software_max_batch: usize,
@@ -150,8 +153,8 @@ fn time_mlp(
 
 /// GFLOP/s of a plain GEMM (`[rows, 512]·[512, 512]`, matrixmultiply's packed AVX/FMA kernels)
 /// split over rayon in 1024-row chunks: the "well-vectorised GEMM" the cpu MLP is compared with.
-fn gemm_reference_gflops(iters: usize) -> anyhow::Result<f64> {
-    let (rows, k, n, chunk) = (16384usize, 512usize, 512usize, 1024usize);
+fn gemm_reference_gflops(rows: usize, iters: usize) -> anyhow::Result<f64> {
+    let (rows, k, n, chunk) = (rows.max(1), 512usize, 512usize, 1024usize);
     let mut rng = crate::util::rng(3);
     let a: Vec<f32> = (0..rows * k)
         .map(|_| rand::Rng::random_range(&mut rng, -1.0f32..1.0))
@@ -189,9 +192,10 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
             }
         }
     }
-    let gemm_ref = gemm_reference_gflops(args.iters)?;
+    let gemm_ref = gemm_reference_gflops(args.gemm_rows, args.iters)?;
     ctx.say(format!(
-        "GEMM reference ([16384,512]x[512,512], {} threads): {gemm_ref:.1} GFLOP/s",
+        "GEMM reference ([{},512]x[512,512], {} threads): {gemm_ref:.1} GFLOP/s",
+        args.gemm_rows,
         rayon::current_num_threads()
     ));
     let mut rows: Vec<Row> = Vec::new();
@@ -289,6 +293,7 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
         "cpu_threads": rayon::current_num_threads(),
         "cpu_sub_batch": args.cpu_sub_batch,
         "gemm_reference_gflops": gemm_ref,
+        "gemm_reference_shape": [args.gemm_rows, 512, 512],
         "networks": notes,
         "results": rows,
         "wgpu_over_cpu": ratios,
