@@ -123,8 +123,8 @@ fn f32_twin_matches_f64_reference() {
     .unwrap();
     let p64 = params(&mlp, 3);
     // More rows than one rayon chunk, so the chunked gradient reduction is exercised.
-    let x64 = random(700 * 3, 1.0, 4);
-    let w64 = random(700 * 2, 1.0, 5);
+    let x64 = random(2100 * 3, 1.0, 4);
+    let w64 = random(2100 * 2, 1.0, 5);
     let f = |v: &[f64]| v.iter().map(|&a| a as f32).collect::<Vec<f32>>();
     let (y64, c64) = cpu_forward(&mlp, &p64, &x64, true).unwrap();
     let (y32, c32) = cpu_forward(&mlp, &f(&p64), &f(&x64), true).unwrap();
