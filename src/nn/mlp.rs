@@ -1433,7 +1433,9 @@ fn gpu_backward(
 
 impl Backend {
     /// MLP forward on `x` `[n, in_dim]`. With `keep`, the result holds what
-    /// [`Backend::mlp_backward`] needs.
+    /// [`Backend::mlp_backward`] needs: every layer's input and pre-activation, i.e. about
+    /// `2·Σ widths` floats per point (8×512: ~33 KB per point), so callers feed large batches in
+    /// sub-batches (`bench nn` uses 8192 points on the cpu).
     pub fn mlp_forward(
         &self,
         mlp: &Mlp,
