@@ -44,7 +44,8 @@ struct EltParams {
 };
 
 // ---- GEMM -------------------------------------------------------------------------------
-// Workgroup 16x16 threads computes a 64x64 tile of C, 4x4 per thread, K in steps of 16.
+// Workgroup 16x16 threads computes a 64x64 tile of C, 4x4 per thread (vec4 accumulators),
+// K in steps of 16 staged through workgroup memory.
 
 @group(0) @binding(0) var<uniform> gp: GemmParams;
 @group(0) @binding(1) var<storage, read> ga: array<f32>;
@@ -54,16 +55,19 @@ struct EltParams {
 
 const TILE: u32 = 64u;
 const TK: u32 = 16u;
-var<workgroup> tile_a: array<f32, 1024>; // [kk][row]
-var<workgroup> tile_b: array<f32, 1024>; // [kk][col]
+var<workgroup> tile_a: array<vec4<f32>, 256>; // [kk][row / 4], 4 rows per vec4
+var<workgroup> tile_b: array<vec4<f32>, 256>; // [kk][col / 4], 4 columns per vec4
 
 @compute @workgroup_size(16, 16)
 fn gemm(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
     let row0 = wid.y * TILE;
     let col0 = wid.x * TILE;
     let tid = lid.y * 16u + lid.x;
-    var acc: array<f32, 16>;
-    for (var i = 0u; i < 16u; i++) { acc[i] = 0.0; }
+    // acc_i holds C[row0 + 4 lid.y + i, col0 + 4 lid.x + 0..3].
+    var acc0 = vec4<f32>(0.0);
+    var acc1 = vec4<f32>(0.0);
+    var acc2 = vec4<f32>(0.0);
+    var acc3 = vec4<f32>(0.0);
     var k_begin = 0u;
     var k_end = gp.k;
     var c_base = gp.c_off;
@@ -73,43 +77,41 @@ fn gemm(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_id) lid
         c_base = gp.c_off + wid.z * gp.m * gp.ldc;
     }
     for (var k0 = k_begin; k0 < k_end; k0 += TK) {
-        for (var t = 0u; t < 4u; t++) {
-            let e = tid + t * 256u;
-            let kk = e / TILE;
-            let r = e % TILE;
-            let gk = k0 + kk;
-            var va = 0.0;
-            let gr = row0 + r;
-            if (gr < gp.m && gk < k_end) { va = ga[gp.a_off + gr * gp.rsa + gk * gp.csa]; }
-            tile_a[kk * TILE + r] = va;
-            var vb = 0.0;
-            let gcol = col0 + r;
-            if (gcol < gp.n && gk < k_end) { vb = gb[gp.b_off + gk * gp.rsb + gcol * gp.csb]; }
-            tile_b[kk * TILE + r] = vb;
+        // Each thread loads one vec4 of A (4 rows) and one of B (4 columns) for one kk.
+        let kk = tid / 16u;
+        let q = tid % 16u;
+        let gk = k0 + kk;
+        var va = vec4<f32>(0.0);
+        var vb = vec4<f32>(0.0);
+        if (gk < k_end) {
+            for (var i = 0u; i < 4u; i++) {
+                let gr = row0 + q * 4u + i;
+                if (gr < gp.m) { va[i] = ga[gp.a_off + gr * gp.rsa + gk * gp.csa]; }
+                let gcol = col0 + q * 4u + i;
+                if (gcol < gp.n) { vb[i] = gb[gp.b_off + gk * gp.rsb + gcol * gp.csb]; }
+            }
         }
+        tile_a[kk * 16u + q] = va;
+        tile_b[kk * 16u + q] = vb;
         workgroupBarrier();
-        for (var kk = 0u; kk < TK; kk++) {
-            var av: array<f32, 4>;
-            var bv: array<f32, 4>;
-            for (var i = 0u; i < 4u; i++) {
-                av[i] = tile_a[kk * TILE + lid.y * 4u + i];
-                bv[i] = tile_b[kk * TILE + lid.x * 4u + i];
-            }
-            for (var i = 0u; i < 4u; i++) {
-                for (var j = 0u; j < 4u; j++) {
-                    acc[i * 4u + j] = fma(av[i], bv[j], acc[i * 4u + j]);
-                }
-            }
+        for (var k = 0u; k < TK; k++) {
+            let a = tile_a[k * 16u + lid.y];
+            let b = tile_b[k * 16u + lid.x];
+            acc0 = fma(vec4<f32>(a.x), b, acc0);
+            acc1 = fma(vec4<f32>(a.y), b, acc1);
+            acc2 = fma(vec4<f32>(a.z), b, acc2);
+            acc3 = fma(vec4<f32>(a.w), b, acc3);
         }
         workgroupBarrier();
     }
+    let accs = array<vec4<f32>, 4>(acc0, acc1, acc2, acc3);
     for (var i = 0u; i < 4u; i++) {
         let r = row0 + lid.y * 4u + i;
         if (r >= gp.m) { continue; }
         for (var j = 0u; j < 4u; j++) {
             let c = col0 + lid.x * 4u + j;
             if (c >= gp.n) { continue; }
-            var v = acc[i * 4u + j];
+            var v = accs[i][j];
             if ((gp.flags & 1u) != 0u) { v += gbias[gp.bias_off + c]; }
             let idx = c_base + r * gp.ldc + c;
             if ((gp.flags & 2u) != 0u) { v += gc[idx]; }
