@@ -2,6 +2,8 @@
 //! analytic torus from SDF samples plus an eikonal term (numerical gradients) with Adam, and
 //! reaches a stated mean |SDF error| on held-out points near the surface.
 
+#![allow(clippy::needless_range_loop)] // index loops mirror the formulas
+
 use pii_bake::backend::Backend;
 use pii_bake::nn::field::{
     FieldEncoding, FieldOutputGrads, FieldOutputs, SdfField, SdfFieldConfig,
