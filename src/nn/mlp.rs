@@ -525,10 +525,15 @@ fn strided_fits(len: usize, rows: usize, cols: usize, rs: usize, cs: usize) -> b
 /// clamped to [-87.3, 88.3] so the result is always finite and normal.
 #[inline(always)]
 fn exp_f32(x: f32) -> f32 {
-    let x = x.clamp(-87.3, 88.3);
+    // max/min (not clamp) map NaN to a bound, so the conversions below never see NaN; the
+    // NaN is put back at the end.
+    let xc = x.max(-87.3).min(88.3);
     // floor(x·log2 e + ½) by truncation of a positive number (x ≥ −87.3): no libm call.
-    let n = ((x * std::f32::consts::LOG2_E + 0.5 + 128.0) as i32 - 128) as f32;
-    let r = x - n * 0.693_359_4 - n * -2.121_944_4e-4;
+    let t = xc * std::f32::consts::LOG2_E + 0.5 + 128.0;
+    // SAFETY: t is finite and in [1.5, 256], so it fits an i32.
+    let ni = unsafe { t.to_int_unchecked::<i32>() } - 128;
+    let n = ni as f32;
+    let r = xc - n * 0.693_359_4 - n * -2.121_944_4e-4;
     let mut p = 1.987_569_1e-4f32;
     p = p * r + 1.398_199_9e-3;
     p = p * r + 8.333_452e-3;
@@ -536,7 +541,12 @@ fn exp_f32(x: f32) -> f32 {
     p = p * r + 1.666_666_5e-1;
     p = p * r + 0.5;
     let e = p * r * r + r + 1.0;
-    e * f32::from_bits(((n as i32 + 127) as u32) << 23)
+    let y = e * f32::from_bits(((ni + 127) as u32) << 23);
+    if x.is_nan() {
+        x
+    } else {
+        y
+    }
 }
 
 /// Branch-free f32 `ln` for normal positive `u` (Cephes `logf` polynomial, ~1 ulp).
@@ -1530,6 +1540,7 @@ mod tests {
         );
         assert!(exp_f32(1e30).is_finite() && exp_f32(-1e30) >= 0.0);
         assert!(exp_f32(f32::INFINITY).is_finite());
+        assert!(exp_f32(f32::NAN).is_nan(), "NaN must propagate");
     }
 
     #[test]
