@@ -1,7 +1,7 @@
 // MLP kernel family, launched by src/nn/mlp.rs (Rust mirrors: GemmParams, EltParams).
 // A tiled GEMM with workgroup memory (forward y = u·Wᵀ + b, dX = dZ·W, dW = dZᵀ·U) and
-// elementwise kernels: activation forward/backward, skip concat forward/backward, bias
-// gradient (column sums), weight norm forward/backward.
+// elementwise kernels: activation forward/backward, skip concat forward/backward, split-K
+// reduction, weight norm forward/backward. Bias gradients are GEMMs with a ones vector.
 
 // Mirrors GemmParams (64 bytes):
 // C[c_off + i*ldc + j] = (acc ? C : 0) + sum_k A[a_off + i*rsa + k*csa] * B[b_off + k*rsb + j*csb]
@@ -215,17 +215,6 @@ fn split_reduce(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_work
     if (ep.kind == 1u) { s = e_out1[ep.off0 + i]; }
     for (var k = 0u; k < ep.rows; k++) { s += e_in0[k * ep.n + i]; }
     e_out1[ep.off0 + i] = s;
-}
-
-// grads[off0 + j] = sum_r dz[r, j], dz is [rows, cols]. One thread per column.
-// Reads rows, cols, off0. Bindings: 1 dz, 2 grads.
-@compute @workgroup_size(256)
-fn bias_grad(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
-    let j = linear_index(gid, nwg, 256u);
-    if (j >= ep.cols) { return; }
-    var s = 0.0;
-    for (var r = 0u; r < ep.rows; r++) { s += e_in0[r * ep.cols + j]; }
-    e_out1[ep.off0 + j] = s;
 }
 
 // Weight norm, one thread per output row o of a [rows, cols] layer: v at params[off0],

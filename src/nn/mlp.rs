@@ -1004,7 +1004,7 @@ pub struct GemmParams {
 }
 const _: () = assert!(std::mem::size_of::<GemmParams>() == 64);
 
-/// Mirrors `EltParams` in `shaders/mlp.wgsl` (activation, skip, bias-gradient and weight-norm
+/// Mirrors `EltParams` in `shaders/mlp.wgsl` (activation, skip, split-K reduction and weight-norm
 /// kernels; each uses the fields its comment names).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, bytemuck::Pod, bytemuck::Zeroable)]
@@ -1309,6 +1309,7 @@ fn gpu_backward(
         .as_ref()
         .map(|_| ctx.zeros_f32("mlp dense grads", mlp.num_dense));
     let dx = ctx.zeros_f32("mlp dx", rows * d);
+    let ones = ctx.upload_f32("mlp ones", &vec![1.0f32; rows]);
     let mut batch = ctx.batch("mlp_backward");
     let n_layers = mlp.layers.len();
     let mut dh: GpuBuffer = {
@@ -1353,13 +1354,25 @@ fn gpu_backward(
             _pad: [0; 2],
         };
         g.gemm(&mut batch, p, &dz, &c.u[l], &dz, gw)?;
-        let ep = EltParams {
-            rows: rows as u32,
-            cols: n as u32,
-            off0: lay.b as u32,
-            ..Default::default()
+        // db = dzᵀ·1 as a GEMM, so the reduction over the batch is split over K like dW.
+        let p = GemmParams {
+            m: n as u32,
+            n: 1,
+            k: rows as u32,
+            a_off: 0,
+            rsa: 1,
+            csa: n as u32,
+            b_off: 0,
+            rsb: 1,
+            csb: 1,
+            c_off: lay.b as u32,
+            ldc: 1,
+            bias_off: 0,
+            flags: 0,
+            k_split: 0,
+            _pad: [0; 2],
         };
-        g.elt(&mut batch, "bias_grad", ep, &[&dz], &[&grads], n)?;
+        g.gemm(&mut batch, p, &dz, &ones, &dz, &grads)?;
         // du = dz·W.
         let (wbuf, w_off) = match &c.weights {
             Some(w) => (w, lay.dense_w),
