@@ -1,10 +1,310 @@
-//! The `bench nn` command.
+//! The `bench nn` command: MLP throughput (points/s, GFLOP/s) for the paper's SDF network and the
+//! fast network, forward and forward+backward, on each available backend, with the wgpu/cpu
+//! ratio and the cpu MLP's GFLOP/s against a plain GEMM reference measured in the same run.
+//! Prints a table and writes JSON atomically.
+//!
+//! What is timed: the MLP on already-encoded inputs (`Backend::mlp_forward` /
+//! `mlp_backward`, parameters and inputs resident on the backend). The encodings are not part of
+//! the timing (the frequency PE is negligible next to 8×512; the hash grid of the fast network
+//! is timed by the encoding's own benchmark once `nn::encoding` lands).
 
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::Context as _;
+use rayon::prelude::*;
+
+use crate::backend::{Backend, BackendChoice};
 use crate::cli::Context;
+use crate::nn::field::{FieldEncoding, SdfFieldConfig};
+use crate::nn::mlp::{Init, Mlp, Real};
 
 #[derive(Debug, clap::Args)]
-pub struct BenchNnArgs {}
+pub struct BenchNnArgs {
+    /// Batch sizes (points), comma separated.
+    #[arg(long, value_delimiter = ',', default_values_t = vec![1usize << 16, 1 << 17, 1 << 18])]
+    pub batches: Vec<usize>,
+    /// Timed repetitions per measurement (after a one-sub-batch warm-up); the best is reported.
+    #[arg(long, default_value_t = 2)]
+    pub iters: usize,
+    /// JSON output path.
+    #[arg(long, default_value = "bench-nn.json")]
+    pub out: PathBuf,
+    /// Networks to run: paper, fast.
+    #[arg(long, value_delimiter = ',', default_values_t = vec!["paper".to_string(), "fast".to_string()])]
+    pub networks: Vec<String>,
+    /// The cpu backend runs a batch in sub-batches of this many points (bounds the memory kept
+    /// for the backward; a trainer would do the same).
+    #[arg(long, default_value_t = 8192)]
+    pub cpu_sub_batch: usize,
+    /// Rows of the GEMM reference (`[rows, 512]·[512, 512]`).
+    #[arg(long, default_value_t = 16384)]
+    pub gemm_rows: usize,
+    /// Largest batch run on a software adapter (lavapipe); larger ones are skipped.
+    #[arg(long, default_value_t = 4096)]
+    pub software_max_batch: usize,
+}
 
-pub fn run(_args: &BenchNnArgs, _ctx: &Context) -> anyhow::Result<()> {
-    anyhow::bail!("`bench nn` is not implemented yet")
+#[derive(Debug, Clone, serde::Serialize)]
+struct Row {
+    network: String,
+    backend: String,
+    device: String,
+    batch: usize,
+    forward_points_per_s: f64,
+    forward_gflops: f64,
+    forward_backward_points_per_s: f64,
+    forward_backward_gflops: f64,
+}
+
+#[derive(Debug, Clone, serde::Serialize)]
+struct Ratio {
+    network: String,
+    batch: usize,
+    forward_wgpu_over_cpu: f64,
+    forward_backward_wgpu_over_cpu: f64,
+}
+
+fn network(name: &str) -> anyhow::Result<(Mlp, &'static str)> {
+    let (cfg, enc_dim, note) = match name {
+        "paper" => {
+            let c = SdfFieldConfig::paper();
+            let FieldEncoding::Frequency { n_freqs } = c.encoding else {
+                unreachable!("paper uses PE")
+            };
+            (
+                c.clone(),
+                3 * (1 + 2 * n_freqs),
+                "PE 6 freqs (39-d input), 8x512, skip at 4, Softplus 100, weight norm",
+            )
+        }
+        "fast" => {
+            let c = SdfFieldConfig::fast();
+            let FieldEncoding::HashGrid {
+                levels,
+                features_per_level,
+                ..
+            } = c.encoding
+            else {
+                unreachable!("fast uses a hash grid")
+            };
+            // Raw xyz + the grid's features.
+            (
+                c.clone(),
+                3 + levels * features_per_level,
+                "hash grid 16x2 (+xyz, 35-d input; grid not timed), 2x64 MLP",
+            )
+        }
+        other => anyhow::bail!("unknown network {other:?} (expected paper or fast)"),
+    };
+    Ok((Mlp::new(cfg.mlp_config(enc_dim))?, note))
+}
+
+fn best_of(iters: usize, mut f: impl FnMut() -> anyhow::Result<()>) -> anyhow::Result<f64> {
+    let mut best = f64::INFINITY;
+    for _ in 0..iters.max(1) {
+        let t = Instant::now();
+        f()?;
+        best = best.min(t.elapsed().as_secs_f64());
+    }
+    Ok(best)
+}
+
+/// Seconds for one forward and one forward+backward over `batch` points.
+fn time_mlp(
+    b: &Backend,
+    mlp: &Mlp,
+    batch: usize,
+    sub: usize,
+    iters: usize,
+) -> anyhow::Result<(f64, f64)> {
+    let params = mlp.init(Init::Default, 1);
+    let mut rng = crate::util::rng(2);
+    let sub = if b.is_gpu() {
+        batch
+    } else {
+        sub.min(batch).max(1)
+    };
+    let x: Vec<f32> = (0..sub * mlp.in_dim())
+        .map(|_| rand::Rng::random_range(&mut rng, -1.0f32..1.0))
+        .collect();
+    let dy = vec![1e-3f32; sub * mlp.out_dim()];
+    let (pt, xt, dyt) = (b.upload(&params), b.upload(&x), b.upload(&dy));
+    let reps = batch.div_ceil(sub);
+    // Warm-up (kernel compilation, allocator): one sub-batch forward + backward.
+    let f = b.mlp_forward(mlp, &pt, &xt, true)?;
+    b.mlp_backward(mlp, &pt, &f, &dyt)?;
+    b.sync()?;
+    drop(f);
+    let fwd = best_of(iters, || {
+        for _ in 0..reps {
+            b.mlp_forward(mlp, &pt, &xt, false)?;
+        }
+        b.sync()?;
+        Ok(())
+    })?;
+    let fb = best_of(iters, || {
+        for _ in 0..reps {
+            let f = b.mlp_forward(mlp, &pt, &xt, true)?;
+            b.mlp_backward(mlp, &pt, &f, &dyt)?;
+        }
+        b.sync()?;
+        Ok(())
+    })?;
+    let scale = batch as f64 / (reps * sub) as f64;
+    Ok((fwd * scale, fb * scale))
+}
+
+/// GFLOP/s of a plain GEMM (`[rows, 512]·[512, 512]`, matrixmultiply's packed AVX/FMA kernels)
+/// split over rayon in 1024-row chunks: the "well-vectorised GEMM" the cpu MLP is compared with.
+fn gemm_reference_gflops(rows: usize, iters: usize) -> anyhow::Result<f64> {
+    let (rows, k, n, chunk) = (rows.max(1), 512usize, 512usize, 1024usize);
+    let mut rng = crate::util::rng(3);
+    let a: Vec<f32> = (0..rows * k)
+        .map(|_| rand::Rng::random_range(&mut rng, -1.0f32..1.0))
+        .collect();
+    let w: Vec<f32> = (0..k * n)
+        .map(|_| rand::Rng::random_range(&mut rng, -1.0f32..1.0))
+        .collect();
+    let mut c = vec![0f32; rows * n];
+    let secs = best_of(iters.max(3) + 1, || {
+        c.par_chunks_mut(chunk * n)
+            .zip(a.par_chunks(chunk * k))
+            .for_each(|(cc, ac)| {
+                f32::gemm(ac.len() / k, k, n, ac, k, 1, &w, n, 1, 0.0, cc);
+            });
+        Ok(())
+    })?;
+    Ok(2.0 * (rows * k * n) as f64 / secs / 1e9)
+}
+
+pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
+    if args.batches.is_empty() || args.batches.contains(&0) {
+        anyhow::bail!("--batches needs positive batch sizes");
+    }
+    let mut backends = vec![Backend::cpu()];
+    match ctx.backend_choice {
+        BackendChoice::Cpu => {}
+        BackendChoice::Auto | BackendChoice::Wgpu => {
+            match Backend::select(ctx.backend_choice, ctx.adapter.as_deref()) {
+                Ok(b) if b.is_gpu() => backends.push(b),
+                Ok(_) => ctx.say(
+                    "no real GPU: cpu only (use --backend wgpu to include a software adapter)",
+                ),
+                Err(e) if ctx.backend_choice == BackendChoice::Wgpu => return Err(e.into()),
+                Err(e) => tracing::info!("wgpu unavailable: {e}"),
+            }
+        }
+    }
+    let gemm_ref = gemm_reference_gflops(args.gemm_rows, args.iters)?;
+    ctx.say(format!(
+        "GEMM reference ([{},512]x[512,512], {} threads): {gemm_ref:.1} GFLOP/s",
+        args.gemm_rows,
+        rayon::current_num_threads()
+    ));
+    let mut rows: Vec<Row> = Vec::new();
+    let mut notes = serde_json::Map::new();
+    ctx.say(format!(
+        "{:<6} {:<60} {:>8} {:>14} {:>9} {:>14} {:>9}",
+        "net", "backend", "batch", "fwd pts/s", "GFLOP/s", "fwd+bwd pts/s", "GFLOP/s"
+    ));
+    for name in &args.networks {
+        let (mlp, note) = network(name)?;
+        notes.insert(
+            name.clone(),
+            serde_json::json!({ "network": note, "params": mlp.num_params(),
+            "forward_flops_per_point": 2 * mlp.macs_per_point() }),
+        );
+        let flops = 2.0 * mlp.macs_per_point() as f64;
+        for b in &backends {
+            let software = b.gpu().is_some_and(|g| g.is_software());
+            for &batch in &args.batches {
+                if software && batch > args.software_max_batch {
+                    ctx.say(format!("{name:<6} {:<60} {batch:>8} skipped (software adapter; --software-max-batch)", b.describe()));
+                    continue;
+                }
+                let (tf, tfb) = time_mlp(b, &mlp, batch, args.cpu_sub_batch, args.iters)
+                    .with_context(|| format!("{name} on {} at batch {batch}", b.describe()))?;
+                let row = Row {
+                    network: name.clone(),
+                    backend: b.name().into(),
+                    device: b.describe(),
+                    batch,
+                    forward_points_per_s: batch as f64 / tf,
+                    forward_gflops: flops * batch as f64 / tf / 1e9,
+                    forward_backward_points_per_s: batch as f64 / tfb,
+                    // The backward is two GEMMs per layer (dW and dX): ~3x the forward's FLOPs.
+                    forward_backward_gflops: 3.0 * flops * batch as f64 / tfb / 1e9,
+                };
+                ctx.say(format!(
+                    "{:<6} {:<60} {:>8} {:>14.3e} {:>9.1} {:>14.3e} {:>9.1}",
+                    name,
+                    row.device,
+                    batch,
+                    row.forward_points_per_s,
+                    row.forward_gflops,
+                    row.forward_backward_points_per_s,
+                    row.forward_backward_gflops
+                ));
+                ctx.emit("bench_nn", serde_json::to_value(&row)?);
+                rows.push(row);
+            }
+        }
+    }
+    let mut ratios = Vec::new();
+    for g in rows.iter().filter(|r| r.backend == "wgpu") {
+        if let Some(c) = rows
+            .iter()
+            .find(|r| r.backend == "cpu" && r.network == g.network && r.batch == g.batch)
+        {
+            ratios.push(Ratio {
+                network: g.network.clone(),
+                batch: g.batch,
+                forward_wgpu_over_cpu: g.forward_points_per_s / c.forward_points_per_s,
+                forward_backward_wgpu_over_cpu: g.forward_backward_points_per_s
+                    / c.forward_backward_points_per_s,
+            });
+        }
+    }
+    for r in &ratios {
+        ctx.say(format!(
+            "wgpu/cpu {} batch {}: forward {:.2}x, forward+backward {:.2}x",
+            r.network, r.batch, r.forward_wgpu_over_cpu, r.forward_backward_wgpu_over_cpu
+        ));
+    }
+    let cpu_vs_gemm: Vec<serde_json::Value> = rows
+        .iter()
+        .filter(|r| r.backend == "cpu")
+        .map(|r| {
+            serde_json::json!({ "network": r.network, "batch": r.batch,
+                "forward_fraction_of_gemm": r.forward_gflops / gemm_ref,
+                "forward_backward_fraction_of_gemm": r.forward_backward_gflops / gemm_ref })
+        })
+        .collect();
+    for v in &cpu_vs_gemm {
+        ctx.say(format!(
+            "cpu MLP / GEMM reference, {} batch {}: forward {:.2}, forward+backward {:.2}",
+            v["network"].as_str().unwrap_or(""),
+            v["batch"],
+            v["forward_fraction_of_gemm"].as_f64().unwrap_or(f64::NAN),
+            v["forward_backward_fraction_of_gemm"]
+                .as_f64()
+                .unwrap_or(f64::NAN)
+        ));
+    }
+    let report = serde_json::json!({
+        "what": "MLP throughput on encoded inputs (encodings not timed); best of --iters after a warm-up",
+        "profile": if cfg!(debug_assertions) { "dev" } else { "release" },
+        "cpu_threads": rayon::current_num_threads(),
+        "cpu_sub_batch": args.cpu_sub_batch,
+        "gemm_reference_gflops": gemm_ref,
+        "gemm_reference_shape": [args.gemm_rows, 512, 512],
+        "networks": notes,
+        "results": rows,
+        "wgpu_over_cpu": ratios,
+        "cpu_vs_gemm_reference": cpu_vs_gemm,
+    });
+    crate::util::atomic_write(&args.out, serde_json::to_string_pretty(&report)?.as_bytes())?;
+    ctx.say(format!("wrote {}", args.out.display()));
+    Ok(())
 }

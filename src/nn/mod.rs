@@ -5,3 +5,5 @@ pub mod adam;
 pub mod encoding;
 pub mod params;
 pub mod bench;
+pub mod field;
+pub mod mlp;
