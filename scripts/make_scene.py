@@ -43,6 +43,7 @@ import sys
 import time
 
 import bpy
+from mathutils import Matrix
 import numpy as np
 
 SCRIPT_VERSION = 1
@@ -365,14 +366,21 @@ def setup_render(args):
     return scene
 
 
-def prepare_env(src, dst, width):
+def prepare_env(scene, src, dst, width):
+    """Resize an environment to width x width/2, save it as a half-float ZIP EXR and load that file back:
+    the saved file is exactly what lights the scene (the ground truth of the environment)."""
     img = bpy.data.images.load(src)
     img.colorspace_settings.name = "Linear Rec.709"
     small = img.copy()
     small.scale(width, width // 2)
-    small.filepath_raw = dst
-    small.file_format = "OPEN_EXR"
-    small.save()
+    st = scene.render.image_settings
+    saved = (st.file_format, st.color_mode, st.color_depth)
+    st.file_format = "OPEN_EXR"
+    st.color_mode = "RGB"
+    st.color_depth = "16"
+    st.exr_codec = "ZIP"
+    small.save_render(dst, scene=scene)
+    st.file_format, st.color_mode, st.color_depth = saved
     bpy.data.images.remove(small)
     bpy.data.images.remove(img)
     out = bpy.data.images.load(dst)
@@ -444,11 +452,11 @@ def main(argv):
 
     scene = setup_render(args)
     train_env, relight_envs = ENVS[args.scene]
-    env_imgs = {"train": prepare_env(os.path.join(args.data, "envmaps", train_env),
+    env_imgs = {"train": prepare_env(scene, os.path.join(args.data, "envmaps", train_env),
                                      os.path.join(out, "env", "train.exr"), args.env_width)}
     if not args.no_relight:
         for rel in relight_envs:
-            env_imgs[env_name(rel)] = prepare_env(os.path.join(args.data, "envmaps", rel),
+            env_imgs[env_name(rel)] = prepare_env(scene, os.path.join(args.data, "envmaps", rel),
                                                   os.path.join(out, "env", env_name(rel) + ".exr"), args.env_width)
     tex_node, bg = setup_world(scene, env_imgs["train"])
 
@@ -475,7 +483,7 @@ def main(argv):
         frames[split] = []
         for i, pos in enumerate(positions):
             m = look_at(pos, center)
-            cam.matrix_world = [list(row) for row in m]
+            cam.matrix_world = Matrix(m.tolist())
             bpy.context.view_layer.update()
             name = "r_%03d" % i
             render_to(scene, os.path.join(out, split, name + ".png"))
@@ -498,7 +506,7 @@ def main(argv):
                                                   bpy.data.images[orig["pii_albedo"]],
                                                   bpy.data.images[orig["pii_rough"]])
         for i, fr in enumerate(frames["test"]):
-            cam.matrix_world = [list(row) for row in fr["transform_matrix"]]
+            cam.matrix_world = Matrix(fr["transform_matrix"])
             bpy.context.view_layer.update()
             render_to(scene, os.path.join(out, "test", "r_%03d_%s.png" % (i, kind)))
     for ob in objs:
@@ -516,7 +524,7 @@ def main(argv):
     for key in relit:
         tex_node.image = env_imgs[key]
         for i, fr in enumerate(frames["test"]):
-            cam.matrix_world = [list(row) for row in fr["transform_matrix"]]
+            cam.matrix_world = Matrix(fr["transform_matrix"])
             bpy.context.view_layer.update()
             render_to(scene, os.path.join(out, "test", "r_%03d_relit_%s.png" % (i, key)))
     times["relit_views_s"] = time.time() - t1
