@@ -32,6 +32,10 @@ Output layout (all paths relative to DIR; the world frame is Blender's: right-ha
     scene.json                                    metadata: scene kind, world frame, env convention, GT file
                                                   naming, probe points on the surface, render settings.
     render_log.json                               wall-clock time per phase (not deterministic; not compared).
+
+Measured (200x200, 24 train + 4 test views, 64 spp, GT passes 16 spp, 2 relit envs, env 256x128, 2 threads on a
+shared 2-core CPU): spot 235 s, bowl 498 s, glossy 254 s. The bundled example tests/data/example is
+`--scene spot --width 200 --height 200 --train 24 --test 4 --samples 64 --env-width 256`.
 """
 
 import argparse
