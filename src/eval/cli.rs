@@ -1,10 +1,273 @@
-//! The `eval` command.
+//! The `eval` command: metrics of a prediction folder against a ground-truth scene.
+//!
+//! ```text
+//! pii-bake eval --gt <scene> --pred <dir> [--out metrics.json] [--mesh-samples 100000]
+//! ```
+//! The ground truth is a scene written by `scripts/make_scene.py` (or any folder with the same layout);
+//! the prediction folder mirrors its file names. For every frame `<name>` of `transforms_test.json`:
+//!
+//! | metric | ground truth | prediction |
+//! | --- | --- | --- |
+//! | novel view PSNR/SSIM (masked by GT alpha) | `test/<name>.png` | `test/<name>.png` or `.exr` |
+//! | relit view PSNR/SSIM, per environment `<env>` | `test/<name>_relit_<env>.png` | same name (`.png`/`.exr`) |
+//! | albedo PSNR after per-channel LS scale (all views together) | `test/<name>_albedo.png` | same name |
+//! | roughness MSE (GT alpha-weighted) | `test/<name>_roughness.png` | same name |
+//!
+//! and once: environment error after per-channel scale alignment, GT `env/train.exr` vs `env.exr` (same
+//! latlong convention, resampled to the GT size if needed; `--gt-env/--pred-env` override), and Chamfer
+//! distance + normal consistency, GT `gt/mesh.obj` vs `mesh.obj` or `mesh.ply` (same world frame;
+//! `--gt-mesh/--pred-mesh` override). A metric whose prediction file is missing is skipped and listed
+//! under `missing`; a prediction whose size differs from the ground truth is an error.
+//! PNGs are sRGB colour (roughness PNGs are linear values); EXRs are linear.
 
+use std::path::{Path, PathBuf};
+
+use serde_json::{json, Value};
+
+use super::mesh::{compare_meshes, Mesh};
+use super::{apply_scale, env_error, ls_scale_rgb, psnr_srgb, resample_latlong, ssim_srgb, weighted_mse};
 use crate::cli::Context;
+use crate::image_io::{read_image_linear, read_mask, ImageF32};
+use crate::util::{atomic_write, DataError};
 
 #[derive(Debug, clap::Args)]
-pub struct EvalArgs {}
+pub struct EvalArgs {
+    /// Ground-truth scene folder (layout of scripts/make_scene.py).
+    #[arg(long)]
+    pub gt: PathBuf,
+    /// Prediction folder mirroring the ground truth's file names (see `eval` docs).
+    #[arg(long)]
+    pub pred: PathBuf,
+    /// Write the metrics JSON here (atomically).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Points sampled on each mesh for Chamfer / normal consistency.
+    #[arg(long, default_value_t = 100_000)]
+    pub mesh_samples: usize,
+    #[arg(long)]
+    pub gt_mesh: Option<PathBuf>,
+    #[arg(long)]
+    pub pred_mesh: Option<PathBuf>,
+    #[arg(long)]
+    pub gt_env: Option<PathBuf>,
+    #[arg(long)]
+    pub pred_env: Option<PathBuf>,
+}
 
-pub fn run(_args: &EvalArgs, _ctx: &Context) -> anyhow::Result<()> {
-    anyhow::bail!("`eval` is not implemented yet")
+fn find_pred(base: &Path) -> Option<PathBuf> {
+    ["png", "exr"].iter().map(|e| base.with_extension(e)).find(|p| p.is_file())
+}
+
+fn same_size(pred: &ImageF32, gt: &ImageF32, pred_path: &Path, gt_path: &Path) -> Result<(), DataError> {
+    if (pred.width, pred.height) != (gt.width, gt.height) {
+        return Err(DataError::new(
+            pred_path,
+            format!("prediction is {}x{} but the ground truth {} is {}x{}", pred.width, pred.height, gt_path.display(), gt.width, gt.height),
+        ));
+    }
+    Ok(())
+}
+
+fn mean(v: &[f64]) -> Option<f64> {
+    (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
+}
+
+/// Test frame names from the ground truth's transforms_test.json.
+fn test_names(gt: &Path) -> Result<Vec<String>, DataError> {
+    let p = gt.join("transforms_test.json");
+    let text = std::fs::read_to_string(&p).map_err(|e| DataError::new(&p, format!("cannot read: {e}")))?;
+    let v: Value = serde_json::from_str(&text).map_err(|e| DataError::new(&p, format!("malformed JSON: {e}")))?;
+    let frames = v.get("frames").and_then(Value::as_array).ok_or_else(|| DataError::new(&p, "no \"frames\" array"))?;
+    frames
+        .iter()
+        .map(|f| {
+            f.get("file_path")
+                .and_then(Value::as_str)
+                .and_then(|s| Path::new(s).file_stem().map(|x| x.to_string_lossy().into_owned()))
+                .ok_or_else(|| DataError::new(&p, "a frame has no file_path"))
+        })
+        .collect()
+}
+
+/// Relighting environments listed as GT files `test/<first>_relit_<env>.png`.
+fn relight_envs(gt: &Path, first: &str) -> Vec<String> {
+    let prefix = format!("{first}_relit_");
+    let mut envs: Vec<String> = std::fs::read_dir(gt.join("test"))
+        .map(|rd| {
+            rd.filter_map(|e| e.ok())
+                .filter_map(|e| {
+                    let stem = e.path().file_stem()?.to_string_lossy().into_owned();
+                    stem.strip_prefix(&prefix).map(str::to_string)
+                })
+                .collect()
+        })
+        .unwrap_or_default();
+    envs.sort();
+    envs.dedup();
+    envs
+}
+
+struct ViewScores {
+    psnr: Vec<f64>,
+    ssim: Vec<f64>,
+    per_view: Vec<Value>,
+}
+
+fn score_views(gt: &Path, pred: &Path, names: &[String], suffix: &str, missing: &mut Vec<String>) -> Result<ViewScores, DataError> {
+    let mut s = ViewScores { psnr: vec![], ssim: vec![], per_view: vec![] };
+    for name in names {
+        let rel = format!("test/{name}{suffix}");
+        let gp = gt.join(format!("{rel}.png"));
+        let Some(pp) = find_pred(&pred.join(&rel)) else {
+            missing.push(rel);
+            continue;
+        };
+        let g = read_image_linear(&gp)?;
+        let p = read_image_linear(&pp)?;
+        same_size(&p, &g, &pp, &gp)?;
+        let mask = g.alpha();
+        let (prgb, grgb) = (p.rgb(), g.rgb());
+        let ps = psnr_srgb(&prgb, &grgb, mask.as_deref());
+        let ss = ssim_srgb(&prgb, &grgb, g.width, g.height, mask.as_deref());
+        s.psnr.push(ps);
+        if let Some(v) = ss {
+            s.ssim.push(v);
+        }
+        s.per_view.push(json!({"name": name, "psnr": ps, "ssim": ss}));
+    }
+    Ok(s)
+}
+
+/// Compute every metric available; returns the JSON report.
+pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
+    let (gt, pred) = (&args.gt, &args.pred);
+    if !pred.is_dir() {
+        return Err(DataError::new(pred, "prediction folder not found"));
+    }
+    let names = test_names(gt)?;
+    let mut missing = Vec::new();
+    let mut report = serde_json::Map::new();
+    report.insert("gt".into(), json!(gt.display().to_string()));
+    report.insert("pred".into(), json!(pred.display().to_string()));
+    report.insert("test_views".into(), json!(names.len()));
+
+    let nv = score_views(gt, pred, &names, "", &mut missing)?;
+    if !nv.psnr.is_empty() {
+        report.insert("novel_view".into(), json!({"views": nv.psnr.len(), "psnr": mean(&nv.psnr), "ssim": mean(&nv.ssim), "per_view": nv.per_view}));
+    }
+    let mut relit = serde_json::Map::new();
+    if let Some(first) = names.first() {
+        for env in relight_envs(gt, first) {
+            let r = score_views(gt, pred, &names, &format!("_relit_{env}"), &mut missing)?;
+            if !r.psnr.is_empty() {
+                relit.insert(env, json!({"views": r.psnr.len(), "psnr": mean(&r.psnr), "ssim": mean(&r.ssim), "per_view": r.per_view}));
+            }
+        }
+    }
+    if !relit.is_empty() {
+        report.insert("relit".into(), Value::Object(relit));
+    }
+
+    // Albedo: one per-channel scale over all views, then PSNR per view.
+    let mut albedo = Vec::new();
+    for name in &names {
+        let rel = format!("test/{name}_albedo");
+        let gp = gt.join(format!("{rel}.png"));
+        let Some(pp) = find_pred(&pred.join(&rel)) else {
+            missing.push(rel);
+            continue;
+        };
+        let g = read_image_linear(&gp)?;
+        let p = read_image_linear(&pp)?;
+        same_size(&p, &g, &pp, &gp)?;
+        albedo.push((p.rgb(), g.rgb(), g.alpha()));
+    }
+    if !albedo.is_empty() {
+        let s = ls_scale_rgb(albedo.iter().map(|(p, g, m)| (&p[..], &g[..], m.as_deref())));
+        let ps: Vec<f64> = albedo.iter().map(|(p, g, m)| psnr_srgb(&apply_scale(p, s), g, m.as_deref())).collect();
+        report.insert("albedo".into(), json!({"views": ps.len(), "scale": s, "psnr_aligned": mean(&ps), "per_view_psnr": ps}));
+    }
+
+    let mut rough = Vec::new();
+    for name in &names {
+        let rel = format!("test/{name}_roughness");
+        let gp = gt.join(format!("{rel}.png"));
+        let Some(pp) = find_pred(&pred.join(&rel)) else {
+            missing.push(rel);
+            continue;
+        };
+        let (gw, gh, gv) = read_mask(&gp)?;
+        let (pw, ph, pv) = read_mask(&pp)?;
+        if (gw, gh) != (pw, ph) {
+            return Err(DataError::new(&pp, format!("prediction is {pw}x{ph} but the ground truth {} is {gw}x{gh}", gp.display())));
+        }
+        let alpha = read_image_linear(&gp)?.alpha();
+        rough.push(weighted_mse(&pv, &gv, 1, alpha.as_deref()));
+    }
+    if !rough.is_empty() {
+        report.insert("roughness".into(), json!({"views": rough.len(), "mse": mean(&rough), "per_view_mse": rough}));
+    }
+
+    let gt_env = args.gt_env.clone().unwrap_or_else(|| gt.join("env").join("train.exr"));
+    let pred_env = args.pred_env.clone().unwrap_or_else(|| pred.join("env.exr"));
+    if pred_env.is_file() {
+        let g = read_image_linear(&gt_env)?;
+        let p = read_image_linear(&pred_env)?;
+        let (g3, mut p3) = (g.rgb(), p.rgb());
+        if (p.width, p.height) != (g.width, g.height) {
+            p3 = resample_latlong(&p3, p.width, p.height, g.width, g.height);
+        }
+        let e = env_error(&p3, &g3, g.width, g.height);
+        report.insert("env".into(), serde_json::to_value(e).unwrap_or(Value::Null));
+    } else {
+        missing.push(pred_env.display().to_string());
+    }
+
+    let gt_mesh = args.gt_mesh.clone().unwrap_or_else(|| gt.join("gt").join("mesh.obj"));
+    let pred_mesh = args.pred_mesh.clone().or_else(|| ["mesh.obj", "mesh.ply"].iter().map(|n| pred.join(n)).find(|p| p.is_file()));
+    match pred_mesh {
+        Some(pm) => {
+            let m = compare_meshes(&Mesh::read(&pm)?, &Mesh::read(&gt_mesh)?, args.mesh_samples, 0);
+            report.insert("mesh".into(), serde_json::to_value(m).unwrap_or(Value::Null));
+        }
+        None => missing.push("mesh.obj / mesh.ply".into()),
+    }
+    report.insert("missing".into(), json!(missing));
+    Ok(Value::Object(report))
+}
+
+pub fn run(args: &EvalArgs, ctx: &Context) -> anyhow::Result<()> {
+    let report = evaluate(args)?;
+    if let Some(out) = &args.out {
+        let text = serde_json::to_string_pretty(&report)?;
+        atomic_write(out, text.as_bytes())?;
+    }
+    ctx.emit("eval", report.clone());
+    let f = |v: &Value| v.as_f64().map_or("-".to_string(), |x| format!("{x:.4}"));
+    if let Some(nv) = report.get("novel_view") {
+        ctx.say(format!("novel view   PSNR {} dB  SSIM {}  ({} views)", f(&nv["psnr"]), f(&nv["ssim"]), nv["views"]));
+    }
+    if let Some(Value::Object(r)) = report.get("relit") {
+        for (env, v) in r {
+            ctx.say(format!("relit {env:<8} PSNR {} dB  SSIM {}", f(&v["psnr"]), f(&v["ssim"])));
+        }
+    }
+    if let Some(a) = report.get("albedo") {
+        ctx.say(format!("albedo       PSNR {} dB after scale {}", f(&a["psnr_aligned"]), a["scale"]));
+    }
+    if let Some(r) = report.get("roughness") {
+        ctx.say(format!("roughness    MSE {}", f(&r["mse"])));
+    }
+    if let Some(e) = report.get("env") {
+        ctx.say(format!("environment  rel. L2 {}  log-MSE {} (scale {})", f(&e["relative_l2"]), f(&e["log_mse"]), e["scale"]));
+    }
+    if let Some(m) = report.get("mesh") {
+        ctx.say(format!("mesh         Chamfer {}  normal consistency {}", f(&m["chamfer"]), f(&m["normal_consistency"])));
+    }
+    if let Some(Value::Array(m)) = report.get("missing") {
+        if !m.is_empty() {
+            ctx.say(format!("skipped (no prediction): {}", m.len()));
+        }
+    }
+    Ok(())
 }

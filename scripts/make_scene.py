@@ -1,0 +1,575 @@
+"""Ground-truth scene generator for pii-bake (Blender 5.0.1 as a Python module, `bpy`).
+
+Renders one synthetic scene in the NeRF/Blender `transforms_{train,test}.json` format with Cycles on the CPU,
+deterministically (fixed seed, fixed sample count, fixed thread count, denoiser off, no metadata stamps),
+view transform "Standard", transparent film, one Principled BSDF per object (metallic 0, albedo and roughness
+from image textures), lit only by an HDR latlong world from `shared/data/envmaps`.
+
+Usage:
+    python scripts/make_scene.py --scene {spot,bowl,glossy} --out DIR [--width 200] [--height 200]
+        [--train 24] [--test 4] [--samples 64] [--gt-samples 16] [--env-width 512] [--threads 2]
+        [--data ../shared/data]
+
+Output layout (all paths relative to DIR; the world frame is Blender's: right-handed, +Z up, metres):
+    transforms_train.json, transforms_test.json   NeRF/Blender format: camera_angle_x, frames[].file_path
+                                                  (no extension, .png), frames[].transform_matrix =
+                                                  camera-to-world with OpenGL camera axes (-Z forward, +Y up).
+                                                  Blender's pixel grid: pixel (i, j) covers [i, i+1]x[j, j+1],
+                                                  principal point = image centre (w/2, h/2).
+    train/r_NNN.png, test/r_NNN.png               RGBA 8-bit, colour sRGB-encoded, straight alpha = coverage.
+    test/r_NNN_albedo.png                         GT base colour (sRGB-encoded RGBA, alpha = coverage).
+    test/r_NNN_roughness.png                      GT perceptual roughness R (linear 8-bit, R=G=B, alpha).
+    test/r_NNN_normal.png                         GT world-space shading normal n, stored as n*0.5+0.5 (linear).
+    test/r_NNN_relit_<env>.png                    the test view relit by another environment (sRGB RGBA).
+    env/train.exr, env/<env>.exr                  the environments exactly as rendered with (linear float
+                                                  latlong, 2:1), in **Blender's World convention**: +Z up,
+                                                  image centre (u = 0.5) looks along world +X, u = 0.25 along
+                                                  world +Y, row 0 = zenith (src/sg/env.rs LatlongConvention::Blender
+                                                  once the scene's Z-up world is mapped to glTF's Y-up frame as
+                                                  (x, y, z) -> (x, z, -y)).
+    gt/mesh.obj                                   GT triangle mesh in the world frame (v, f; 1-based).
+    gt/albedo_*.png, gt/roughness_*.png           the textures used (sRGB albedo, linear roughness).
+    scene.json                                    metadata: scene kind, world frame, env convention, GT file
+                                                  naming, probe points on the surface, render settings.
+    render_log.json                               wall-clock time per phase (not deterministic; not compared).
+
+Measured (200x200, 24 train + 4 test views, 64 spp, GT passes 16 spp, 2 relit envs, env 256x128, 2 threads on a
+shared 2-core CPU): spot 235 s, bowl 498 s, glossy 254 s. The bundled example tests/data/example is
+`--scene spot --width 200 --height 200 --train 24 --test 4 --samples 64 --env-width 256`.
+"""
+
+import argparse
+import json
+import math
+import os
+import struct
+import sys
+import time
+
+import bpy
+from mathutils import Matrix
+import numpy as np
+
+SCRIPT_VERSION = 1
+
+
+def parse_args(argv):
+    here = os.path.dirname(os.path.abspath(__file__))
+    default_data = os.path.normpath(os.path.join(here, "..", "..", "shared", "data"))
+    if not os.path.isdir(default_data):
+        default_data = "/work/shared/data"
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--scene", choices=["spot", "bowl", "glossy"], required=True)
+    p.add_argument("--out", required=True)
+    p.add_argument("--width", type=int, default=200)
+    p.add_argument("--height", type=int, default=200)
+    p.add_argument("--train", type=int, default=24)
+    p.add_argument("--test", type=int, default=4)
+    p.add_argument("--samples", type=int, default=64, help="Cycles samples per pixel for shaded views")
+    p.add_argument("--gt-samples", type=int, default=16, help="samples for the albedo/roughness/normal passes")
+    p.add_argument("--env-width", type=int, default=512, help="width of the environments used (2:1 latlong)")
+    p.add_argument("--threads", type=int, default=2, help="fixed Cycles thread count (determinism)")
+    p.add_argument("--no-relight", action="store_true", help="skip the relit test views")
+    p.add_argument("--data", default=os.environ.get("PII_SHARED_DATA", default_data))
+    return p.parse_args(argv)
+
+
+# Environments: training map and the two relighting maps per scene.
+ENVS = {
+    "spot": ("blender_studiolights/courtyard.exr", ["blender_studiolights/sunset.exr", "invrender/envmap6.exr"]),
+    "bowl": ("blender_studiolights/sunrise.exr", ["blender_studiolights/studio.exr", "blender_studiolights/city.exr"]),
+    "glossy": ("blender_studiolights/forest.exr", ["blender_studiolights/interior.exr", "invrender/envmap12.exr"]),
+}
+
+
+def env_name(rel):
+    return os.path.splitext(os.path.basename(rel))[0]
+
+
+# ---------------------------------------------------------------- textures
+
+
+def save_texture(name, pixels_rgba, path, non_color):
+    """Write an 8-bit PNG texture from float RGBA (rows bottom-up, Blender's order) and load it back."""
+    h, w, _ = pixels_rgba.shape
+    img = bpy.data.images.new(name, w, h, alpha=True, float_buffer=False)
+    if non_color:
+        img.colorspace_settings.name = "Non-Color"
+    img.pixels.foreach_set(np.ascontiguousarray(pixels_rgba, dtype=np.float32).ravel())
+    img.filepath_raw = path
+    img.file_format = "PNG"
+    img.save()
+    bpy.data.images.remove(img)
+    strip_png_metadata(path)
+    loaded = bpy.data.images.load(path)
+    if non_color:
+        loaded.colorspace_settings.name = "Non-Color"
+    return loaded
+
+
+def uv_grid(n):
+    v, u = np.meshgrid((np.arange(n) + 0.5) / n, (np.arange(n) + 0.5) / n, indexing="ij")
+    return u, v
+
+
+def rgba(r, g, b):
+    return np.stack([r, g, b, np.ones_like(r)], axis=-1)
+
+
+def roughness_pattern(n, lo, hi, freq):
+    """Smooth spatially varying roughness in [lo, hi] (stored as the PNG's value, linear)."""
+    u, v = uv_grid(n)
+    t = 0.5 + 0.25 * np.sin(2 * math.pi * freq * u) + 0.25 * np.cos(2 * math.pi * freq * v)
+    r = lo + (hi - lo) * t
+    return rgba(r, r, r)
+
+
+def checker_albedo(n, c0, c1, cells):
+    u, v = uv_grid(n)
+    k = ((np.floor(u * cells) + np.floor(v * cells)) % 2)[..., None]
+    col = np.array(c0)[None, None, :] * (1 - k) + np.array(c1)[None, None, :] * k
+    return rgba(col[..., 0], col[..., 1], col[..., 2])
+
+
+# ---------------------------------------------------------------- materials
+
+
+def principled_material(name, albedo_img, rough_img):
+    mat = bpy.data.materials.new(name)
+    mat.use_nodes = True
+    nt = mat.node_tree
+    for n in list(nt.nodes):
+        nt.nodes.remove(n)
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    bsdf = nt.nodes.new("ShaderNodeBsdfPrincipled")
+    bsdf.inputs["Metallic"].default_value = 0.0
+    uv = nt.nodes.new("ShaderNodeTexCoord")
+    ta = nt.nodes.new("ShaderNodeTexImage")
+    ta.image = albedo_img
+    ta.interpolation = "Linear"
+    tr = nt.nodes.new("ShaderNodeTexImage")
+    tr.image = rough_img
+    tr.interpolation = "Linear"
+    nt.links.new(uv.outputs["UV"], ta.inputs["Vector"])
+    nt.links.new(uv.outputs["UV"], tr.inputs["Vector"])
+    nt.links.new(ta.outputs["Color"], bsdf.inputs["Base Color"])
+    nt.links.new(tr.outputs["Color"], bsdf.inputs["Roughness"])
+    nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+    # Keep handles for the ground-truth passes (emission swaps).
+    mat["pii_albedo"] = albedo_img.name
+    mat["pii_rough"] = rough_img.name
+    return mat
+
+
+def emission_material(name, kind, albedo_img=None, rough_img=None):
+    """Emission-only material that outputs a GT quantity: albedo, roughness or normal*0.5+0.5."""
+    mat = bpy.data.materials.new(name)
+    mat.use_nodes = True
+    nt = mat.node_tree
+    for n in list(nt.nodes):
+        nt.nodes.remove(n)
+    out = nt.nodes.new("ShaderNodeOutputMaterial")
+    em = nt.nodes.new("ShaderNodeEmission")
+    em.inputs["Strength"].default_value = 1.0
+    if kind in ("albedo", "roughness"):
+        uv = nt.nodes.new("ShaderNodeTexCoord")
+        t = nt.nodes.new("ShaderNodeTexImage")
+        t.image = albedo_img if kind == "albedo" else rough_img
+        t.interpolation = "Linear"
+        nt.links.new(uv.outputs["UV"], t.inputs["Vector"])
+        nt.links.new(t.outputs["Color"], em.inputs["Color"])
+    else:
+        geo = nt.nodes.new("ShaderNodeNewGeometry")
+        ma = nt.nodes.new("ShaderNodeVectorMath")
+        ma.operation = "MULTIPLY_ADD"
+        ma.inputs[1].default_value = (0.5, 0.5, 0.5)
+        ma.inputs[2].default_value = (0.5, 0.5, 0.5)
+        nt.links.new(geo.outputs["Normal"], ma.inputs[0])
+        nt.links.new(ma.outputs["Vector"], em.inputs["Color"])
+    nt.links.new(em.outputs["Emission"], out.inputs["Surface"])
+    return mat
+
+
+# ---------------------------------------------------------------- geometry
+
+
+def add_uv_sphere(name, radius, location, segments=64, rings=32):
+    bpy.ops.mesh.primitive_uv_sphere_add(segments=segments, ring_count=rings, radius=radius, location=location,
+                                         calc_uvs=True)
+    ob = bpy.context.active_object
+    ob.name = name
+    bpy.ops.object.shade_smooth()
+    return ob
+
+
+def build_spot(args, tex_dir):
+    path = os.path.join(args.data, "meshes", "spot", "spot_triangulated.obj")
+    bpy.ops.wm.obj_import(filepath=path, forward_axis="NEGATIVE_Z", up_axis="Y")
+    ob = bpy.context.selected_objects[0]
+    ob.name = "spot"
+    bpy.context.view_layer.objects.active = ob
+    bpy.ops.object.shade_smooth()
+    alb = bpy.data.images.load(os.path.join(args.data, "meshes", "spot", "spot_texture.png"))
+    alb_small = alb.copy()
+    alb_small.scale(256, 256)
+    alb_px = np.array(alb_small.pixels[:], dtype=np.float32).reshape(256, 256, 4)
+    a = save_texture("spot_albedo", alb_px, os.path.join(tex_dir, "albedo_spot.png"), non_color=False)
+    r = save_texture("spot_rough", roughness_pattern(256, 0.3, 0.8, 3), os.path.join(tex_dir, "roughness_spot.png"),
+                     non_color=True)
+    ob.data.materials.clear()
+    ob.data.materials.append(principled_material("spot", a, r))
+    return [ob]
+
+
+def build_bowl(args, tex_dir):
+    # A hemispherical bowl (open at the top, thick wall) holding a ball: strong interreflection and
+    # self-shadowing inside the bowl.
+    bowl = add_uv_sphere("bowl", 1.0, (0.0, 0.0, 0.0))
+    me = bowl.data
+    import bmesh
+
+    bm = bmesh.new()
+    bm.from_mesh(me)
+    bmesh.ops.delete(bm, geom=[v for v in bm.verts if v.co.z > 0.2], context="VERTS")
+    bm.to_mesh(me)
+    bm.free()
+    mod = bowl.modifiers.new("wall", "SOLIDIFY")
+    mod.thickness = 0.08
+    mod.offset = 1.0
+    bpy.context.view_layer.objects.active = bowl
+    bpy.ops.object.modifier_apply(modifier="wall")
+    ball = add_uv_sphere("ball", 0.45, (0.0, 0.0, -0.5))
+    a1 = save_texture("bowl_albedo", checker_albedo(256, (0.8, 0.75, 0.7), (0.55, 0.2, 0.15), 8),
+                      os.path.join(tex_dir, "albedo_bowl.png"), non_color=False)
+    r1 = save_texture("bowl_rough", roughness_pattern(256, 0.35, 0.75, 2), os.path.join(tex_dir, "roughness_bowl.png"),
+                      non_color=True)
+    a2 = save_texture("ball_albedo", checker_albedo(256, (0.2, 0.45, 0.75), (0.85, 0.85, 0.3), 6),
+                      os.path.join(tex_dir, "albedo_ball.png"), non_color=False)
+    r2 = save_texture("ball_rough", roughness_pattern(256, 0.2, 0.5, 4), os.path.join(tex_dir, "roughness_ball.png"),
+                      non_color=True)
+    bowl.data.materials.clear()
+    bowl.data.materials.append(principled_material("bowl", a1, r1))
+    ball.data.materials.clear()
+    ball.data.materials.append(principled_material("ball", a2, r2))
+    return [bowl, ball]
+
+
+def build_glossy(args, tex_dir):
+    # A smooth sphere and a torus, roughness 0.05-0.15: a known failure case for SG shading.
+    s = add_uv_sphere("sphere", 0.6, (0.0, 0.0, 0.0))
+    bpy.ops.mesh.primitive_torus_add(major_radius=0.9, minor_radius=0.2, major_segments=64, minor_segments=24,
+                                     location=(0.0, 0.0, -0.1), generate_uvs=True)
+    t = bpy.context.active_object
+    t.name = "torus"
+    t.rotation_euler = (0.35, 0.0, 0.0)
+    bpy.ops.object.shade_smooth()
+    a1 = save_texture("sphere_albedo", checker_albedo(256, (0.7, 0.1, 0.1), (0.9, 0.8, 0.6), 6),
+                      os.path.join(tex_dir, "albedo_sphere.png"), non_color=False)
+    r1 = save_texture("sphere_rough", roughness_pattern(256, 0.05, 0.15, 2), os.path.join(tex_dir, "roughness_sphere.png"),
+                      non_color=True)
+    a2 = save_texture("torus_albedo", checker_albedo(256, (0.15, 0.15, 0.2), (0.6, 0.65, 0.7), 12),
+                      os.path.join(tex_dir, "albedo_torus.png"), non_color=False)
+    r2 = save_texture("torus_rough", roughness_pattern(256, 0.05, 0.15, 3), os.path.join(tex_dir, "roughness_torus.png"),
+                      non_color=True)
+    s.data.materials.clear()
+    s.data.materials.append(principled_material("sphere", a1, r1))
+    t.data.materials.clear()
+    t.data.materials.append(principled_material("torus", a2, r2))
+    return [s, t]
+
+
+def world_triangles(objs):
+    """Evaluated world-space vertices and triangles of all objects (one merged mesh)."""
+    deps = bpy.context.evaluated_depsgraph_get()
+    verts, tris = [], []
+    for ob in objs:
+        ev = ob.evaluated_get(deps)
+        me = ev.to_mesh()
+        me.calc_loop_triangles()
+        mw = np.array(ob.matrix_world)
+        co = np.array([v.co for v in me.vertices], dtype=np.float64)
+        co = co @ mw[:3, :3].T + mw[:3, 3]
+        base = sum(len(v) for v in verts)
+        verts.append(co)
+        tris.extend([[base + i for i in t.vertices] for t in me.loop_triangles])
+        ev.to_mesh_clear()
+    return np.concatenate(verts), np.array(tris, dtype=np.int64)
+
+
+def write_obj(path, verts, tris):
+    lines = ["# pii-bake make_scene.py ground-truth mesh, world frame (+Z up, metres)"]
+    lines += ["v %.6f %.6f %.6f" % tuple(v) for v in verts]
+    lines += ["f %d %d %d" % (t[0] + 1, t[1] + 1, t[2] + 1) for t in tris]
+    with open(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
+
+
+# ---------------------------------------------------------------- cameras, world, render
+
+
+def fibonacci_dirs(n, offset, z_min, z_max):
+    """n unit directions on a spherical band z in [z_min, z_max], golden-angle spiral."""
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    out = []
+    for i in range(n):
+        z = z_max - (z_max - z_min) * (i + 0.5) / n
+        r = math.sqrt(max(0.0, 1.0 - z * z))
+        phi = golden * i + offset
+        out.append((r * math.cos(phi), r * math.sin(phi), z))
+    return out
+
+
+def look_at(cam_pos, target=(0.0, 0.0, 0.0)):
+    """camera-to-world 4x4 (OpenGL axes: -Z forward, +Y up) looking at target with world +Z up."""
+    c = np.array(cam_pos, dtype=np.float64)
+    fwd = np.array(target) - c
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, np.array([0.0, 0.0, 1.0]))
+    right /= np.linalg.norm(right)
+    up = np.cross(right, fwd)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, up, -fwd, c
+    return m
+
+
+def setup_render(args):
+    scene = bpy.context.scene
+    r = scene.render
+    r.engine = "CYCLES"
+    r.resolution_x, r.resolution_y, r.resolution_percentage = args.width, args.height, 100
+    r.film_transparent = True
+    r.threads_mode = "FIXED"
+    r.threads = args.threads
+    r.image_settings.file_format = "PNG"
+    r.image_settings.color_mode = "RGBA"
+    r.image_settings.color_depth = "8"
+    r.image_settings.compression = 90
+    r.use_persistent_data = False
+    for attr in dir(r):  # no date/time/render-time metadata in the PNGs (byte-identical reruns)
+        if attr.startswith("use_stamp"):
+            try:
+                setattr(r, attr, False)
+            except (AttributeError, TypeError):
+                pass
+    c = scene.cycles
+    c.device = "CPU"
+    c.samples = args.samples
+    c.use_adaptive_sampling = False
+    c.use_denoising = False
+    c.seed = 0
+    c.use_animated_seed = False
+    c.sample_clamp_direct = 0.0
+    c.sample_clamp_indirect = 0.0
+    c.max_bounces = 8
+    c.pixel_filter_type = "BLACKMAN_HARRIS"
+    scene.view_settings.view_transform = "Standard"
+    scene.view_settings.look = "None"
+    scene.view_settings.exposure = 0.0
+    scene.view_settings.gamma = 1.0
+    scene.display_settings.display_device = "sRGB"
+    return scene
+
+
+def prepare_env(scene, src, dst, width):
+    """Resize an environment to width x width/2, save it as a half-float ZIP EXR and load that file back:
+    the saved file is exactly what lights the scene (the ground truth of the environment)."""
+    img = bpy.data.images.load(src)
+    img.colorspace_settings.name = "Linear Rec.709"
+    small = img.copy()
+    small.scale(width, width // 2)
+    st = scene.render.image_settings
+    saved = (st.file_format, st.color_mode, st.color_depth)
+    st.file_format = "OPEN_EXR"
+    st.color_mode = "RGB"
+    st.color_depth = "16"
+    st.exr_codec = "ZIP"
+    small.save_render(dst, scene=scene)
+    st.file_format, st.color_mode, st.color_depth = saved
+    bpy.data.images.remove(small)
+    bpy.data.images.remove(img)
+    out = bpy.data.images.load(dst)
+    out.colorspace_settings.name = "Linear Rec.709"
+    return out
+
+
+def setup_world(scene, env_img):
+    world = bpy.data.worlds.new("env") if scene.world is None else scene.world
+    scene.world = world
+    world.use_nodes = True
+    nt = world.node_tree
+    for n in list(nt.nodes):
+        nt.nodes.remove(n)
+    out = nt.nodes.new("ShaderNodeOutputWorld")
+    bg = nt.nodes.new("ShaderNodeBackground")
+    tex = nt.nodes.new("ShaderNodeTexEnvironment")
+    tex.image = env_img
+    tex.interpolation = "Linear"
+    tex.projection = "EQUIRECTANGULAR"
+    bg.inputs["Strength"].default_value = 1.0
+    nt.links.new(tex.outputs["Color"], bg.inputs["Color"])
+    nt.links.new(bg.outputs["Background"], out.inputs["Surface"])
+    return tex, bg
+
+
+KEEP_PNG_CHUNKS = (b"IHDR", b"PLTE", b"tRNS", b"IDAT", b"IEND")
+
+
+def strip_png_metadata(path):
+    """Keep only the image chunks: Cycles writes render timings as tEXt chunks (not reproducible)."""
+    with open(path, "rb") as f:
+        data = f.read()
+    out, pos = [data[:8]], 8
+    while pos < len(data):
+        (n,) = struct.unpack(">I", data[pos:pos + 4])
+        kind = data[pos + 4:pos + 8]
+        if kind in KEEP_PNG_CHUNKS:
+            out.append(data[pos:pos + 12 + n])
+        pos += 12 + n
+    with open(path, "wb") as f:
+        f.write(b"".join(out))
+
+
+def render_to(scene, path):
+    scene.render.filepath = path
+    bpy.ops.render.render(write_still=True)
+    strip_png_metadata(path)
+
+
+def main(argv):
+    args = parse_args(argv)
+    out = os.path.abspath(args.out)
+    for d in ("train", "test", "env", "gt"):
+        os.makedirs(os.path.join(out, d), exist_ok=True)
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    times = {}
+    t0 = time.time()
+    tex_dir = os.path.join(out, "gt")
+    objs = {"spot": build_spot, "bowl": build_bowl, "glossy": build_glossy}[args.scene](args, tex_dir)
+    verts, tris = world_triangles(objs)
+    write_obj(os.path.join(out, "gt", "mesh.obj"), verts, tris)
+    lo, hi = verts.min(axis=0), verts.max(axis=0)
+    center = 0.5 * (lo + hi)
+    radius = float(np.max(np.linalg.norm(verts - center, axis=1)))
+    # probe points: deterministic surface vertices, for projection tests
+    idx = np.linspace(0, len(verts) - 1, 16).astype(int)
+    probes = [[round(float(x), 6) for x in verts[i]] for i in idx]
+
+    scene = setup_render(args)
+    train_env, relight_envs = ENVS[args.scene]
+    env_imgs = {"train": prepare_env(scene, os.path.join(args.data, "envmaps", train_env),
+                                     os.path.join(out, "env", "train.exr"), args.env_width)}
+    if not args.no_relight:
+        for rel in relight_envs:
+            env_imgs[env_name(rel)] = prepare_env(scene, os.path.join(args.data, "envmaps", rel),
+                                                  os.path.join(out, "env", env_name(rel) + ".exr"), args.env_width)
+    tex_node, bg = setup_world(scene, env_imgs["train"])
+
+    cam_data = bpy.data.cameras.new("cam")
+    cam_data.sensor_fit = "HORIZONTAL"
+    fov_x = math.radians(40.0)
+    cam_data.angle_x = fov_x
+    cam_data.clip_start, cam_data.clip_end = 0.05, 100.0
+    cam = bpy.data.objects.new("cam", cam_data)
+    scene.collection.objects.link(cam)
+    scene.camera = cam
+    aspect_min = min(args.width, args.height) / args.width
+    half = math.atan(math.tan(fov_x / 2) * aspect_min)
+    dist = float(1.15 * radius / math.sin(half))
+    times["setup_s"] = time.time() - t0
+
+    splits = {
+        "train": [c * dist + center for c in np.array(fibonacci_dirs(args.train, 0.0, -0.35, 0.95))],
+        "test": [c * dist + center for c in np.array(fibonacci_dirs(args.test, 1.3, -0.2, 0.8))],
+    }
+    frames = {}
+    for split, positions in splits.items():
+        t1 = time.time()
+        frames[split] = []
+        for i, pos in enumerate(positions):
+            m = look_at(pos, center)
+            cam.matrix_world = Matrix(m.tolist())
+            bpy.context.view_layer.update()
+            name = "r_%03d" % i
+            render_to(scene, os.path.join(out, split, name + ".png"))
+            frames[split].append({"file_path": "./%s/%s" % (split, name),
+                                  "transform_matrix": [[round(float(x), 9) for x in row] for row in m]})
+        times["%s_views_s" % split] = time.time() - t1
+
+    # ground-truth passes for the test views: emission swaps, world off
+    t1 = time.time()
+    saved_mats = {ob.name: [s.material for s in ob.material_slots] for ob in objs}
+    bg.inputs["Strength"].default_value = 0.0
+    scene.cycles.samples = args.gt_samples
+    scene.cycles.max_bounces = 0
+    for kind in ("albedo", "roughness", "normal"):
+        scene.view_settings.view_transform = "Standard" if kind == "albedo" else "Raw"
+        for ob in objs:
+            for slot in ob.material_slots:
+                orig = saved_mats[ob.name][0]
+                slot.material = emission_material("%s_%s" % (ob.name, kind), kind,
+                                                  bpy.data.images[orig["pii_albedo"]],
+                                                  bpy.data.images[orig["pii_rough"]])
+        for i, fr in enumerate(frames["test"]):
+            cam.matrix_world = Matrix(fr["transform_matrix"])
+            bpy.context.view_layer.update()
+            render_to(scene, os.path.join(out, "test", "r_%03d_%s.png" % (i, kind)))
+    for ob in objs:
+        for slot, mat in zip(ob.material_slots, saved_mats[ob.name]):
+            slot.material = mat
+    times["gt_passes_s"] = time.time() - t1
+
+    # relit test views
+    t1 = time.time()
+    scene.view_settings.view_transform = "Standard"
+    scene.cycles.samples = args.samples
+    scene.cycles.max_bounces = 8
+    bg.inputs["Strength"].default_value = 1.0
+    relit = [k for k in env_imgs if k != "train"]
+    for key in relit:
+        tex_node.image = env_imgs[key]
+        for i, fr in enumerate(frames["test"]):
+            cam.matrix_world = Matrix(fr["transform_matrix"])
+            bpy.context.view_layer.update()
+            render_to(scene, os.path.join(out, "test", "r_%03d_relit_%s.png" % (i, key)))
+    times["relit_views_s"] = time.time() - t1
+
+    for split in ("train", "test"):
+        doc = {"camera_angle_x": fov_x, "frames": frames[split]}
+        with open(os.path.join(out, "transforms_%s.json" % split), "w") as f:
+            json.dump(doc, f, indent=1)
+    meta = {
+        "generator": "scripts/make_scene.py v%d, Blender %s, Cycles CPU" % (SCRIPT_VERSION, bpy.app.version_string),
+        "scene": args.scene,
+        "world": {"up": "+Z", "handedness": "right", "units": "metres"},
+        "bound": {"center": [round(float(x), 6) for x in center], "radius": round(radius, 6)},
+        "probe_points": probes,
+        "mesh": "gt/mesh.obj",
+        "env": {
+            "train": "env/train.exr",
+            "train_source": train_env,
+            "relight": {k: "env/%s.exr" % k for k in relit},
+            "convention": "blender",
+            "convention_note": "Blender World: +Z up, u=0.5 looks along +X, u=0.25 along +Y, row 0 = zenith",
+        },
+        "test_gt": {
+            "rgb": "test/{name}.png",
+            "albedo": "test/{name}_albedo.png (sRGB RGBA)",
+            "roughness": "test/{name}_roughness.png (linear, R=G=B)",
+            "normal": "test/{name}_normal.png (linear, world normal * 0.5 + 0.5)",
+            "relit": "test/{name}_relit_{env}.png (sRGB RGBA)",
+        },
+        "render": {"width": args.width, "height": args.height, "samples": args.samples,
+                   "gt_samples": args.gt_samples, "seed": 0, "threads": args.threads, "denoiser": False,
+                   "view_transform": "Standard", "film_transparent": True, "max_bounces": 8,
+                   "env_width": args.env_width, "camera_angle_x_deg": 40.0, "camera_distance": round(dist, 6)},
+    }
+    with open(os.path.join(out, "scene.json"), "w") as f:
+        json.dump(meta, f, indent=1)
+    times["total_s"] = time.time() - t0
+    with open(os.path.join(out, "render_log.json"), "w") as f:
+        json.dump({k: round(v, 2) for k, v in times.items()}, f, indent=1)
+    print("make_scene: %s -> %s in %.1f s %s" % (args.scene, out, times["total_s"], json.dumps(times)))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

@@ -1,0 +1,458 @@
+//! Meshes for evaluation: OBJ and PLY (ascii, binary little/big endian) reading, area-uniform surface
+//! sampling, a small kd-tree, Chamfer distance and normal consistency.
+//!
+//! Definitions (Occupancy Networks / DTU style, on `n` area-uniform samples per mesh, seeded):
+//! - accuracy = mean over prediction samples of the distance to the nearest ground-truth sample;
+//! - completeness = the same from ground truth to prediction;
+//! - chamfer = (accuracy + completeness) / 2 (units of the meshes' frame);
+//! - normal consistency = mean of |n_a · n_b| over nearest pairs, both directions averaged (1 = perfect).
+
+use std::path::Path;
+
+use glam::DVec3;
+use rand::Rng;
+
+use crate::util::DataError;
+
+#[derive(Clone, Debug, Default)]
+pub struct Mesh {
+    pub positions: Vec<DVec3>,
+    pub triangles: Vec<[u32; 3]>,
+}
+
+fn bad(path: &Path, what: impl Into<String>) -> DataError {
+    DataError::new(path, what.into())
+}
+
+impl Mesh {
+    /// Read an .obj or .ply file (polygons are fan-triangulated).
+    pub fn read(path: &Path) -> Result<Mesh, DataError> {
+        let ext = path.extension().map(|e| e.to_string_lossy().to_lowercase()).unwrap_or_default();
+        let m = match ext.as_str() {
+            "obj" => read_obj(path)?,
+            "ply" => read_ply(path)?,
+            _ => return Err(bad(path, "unsupported mesh format (expected .obj or .ply)")),
+        };
+        if m.triangles.is_empty() {
+            return Err(bad(path, "mesh has no faces"));
+        }
+        let n = m.positions.len() as u32;
+        if let Some(t) = m.triangles.iter().find(|t| t.iter().any(|&i| i >= n)) {
+            return Err(bad(path, format!("face {t:?} refers to a vertex past the {n} vertices")));
+        }
+        if m.positions.iter().any(|p| !p.is_finite()) {
+            return Err(bad(path, "mesh has non-finite vertex positions"));
+        }
+        Ok(m)
+    }
+
+    pub fn area(&self) -> f64 {
+        self.triangles.iter().map(|t| self.tri_cross(t).length() * 0.5).sum()
+    }
+
+    fn tri_cross(&self, t: &[u32; 3]) -> DVec3 {
+        let (a, b, c) = (self.positions[t[0] as usize], self.positions[t[1] as usize], self.positions[t[2] as usize]);
+        (b - a).cross(c - a)
+    }
+
+    /// `n` points uniformly distributed over the surface area, with their face normals.
+    pub fn sample(&self, n: usize, seed: u64) -> (Vec<DVec3>, Vec<DVec3>) {
+        let mut cdf = Vec::with_capacity(self.triangles.len());
+        let mut acc = 0.0;
+        for t in &self.triangles {
+            acc += self.tri_cross(t).length();
+            cdf.push(acc);
+        }
+        let mut rng = crate::util::rng(seed);
+        let (mut pts, mut nrm) = (Vec::with_capacity(n), Vec::with_capacity(n));
+        if acc <= 0.0 {
+            return (pts, nrm);
+        }
+        for _ in 0..n {
+            let r = rng.random::<f64>() * acc;
+            let k = cdf.partition_point(|c| *c < r).min(self.triangles.len() - 1);
+            let t = &self.triangles[k];
+            let (a, b, c) = (self.positions[t[0] as usize], self.positions[t[1] as usize], self.positions[t[2] as usize]);
+            let (mut u, mut v) = (rng.random::<f64>(), rng.random::<f64>());
+            if u + v > 1.0 {
+                u = 1.0 - u;
+                v = 1.0 - v;
+            }
+            pts.push(a + (b - a) * u + (c - a) * v);
+            nrm.push(self.tri_cross(t).normalize_or_zero());
+        }
+        (pts, nrm)
+    }
+}
+
+fn parse_index(path: &Path, line: usize, tok: &str, nverts: usize) -> Result<u32, DataError> {
+    let s = tok.split('/').next().unwrap_or("");
+    let i: i64 = s.parse().map_err(|_| bad(path, format!("line {line}: bad face index {tok:?}")))?;
+    let idx = if i > 0 { i - 1 } else { nverts as i64 + i };
+    if idx < 0 || idx >= nverts as i64 {
+        return Err(bad(path, format!("line {line}: face index {i} out of range (1..={nverts})")));
+    }
+    Ok(idx as u32)
+}
+
+pub fn read_obj(path: &Path) -> Result<Mesh, DataError> {
+    let text = std::fs::read_to_string(path).map_err(|e| bad(path, format!("cannot read: {e}")))?;
+    let mut m = Mesh::default();
+    for (no, line) in text.lines().enumerate() {
+        let mut toks = line.split_whitespace();
+        match toks.next() {
+            Some("v") => {
+                let v: Vec<f64> = toks.take(3).map(|t| t.parse::<f64>()).collect::<Result<_, _>>().map_err(|_| bad(path, format!("line {}: bad vertex", no + 1)))?;
+                if v.len() != 3 {
+                    return Err(bad(path, format!("line {}: vertex needs 3 coordinates", no + 1)));
+                }
+                m.positions.push(DVec3::new(v[0], v[1], v[2]));
+            }
+            Some("f") => {
+                let idx: Vec<u32> = toks.map(|t| parse_index(path, no + 1, t, m.positions.len())).collect::<Result<_, _>>()?;
+                if idx.len() < 3 {
+                    return Err(bad(path, format!("line {}: face with fewer than 3 vertices", no + 1)));
+                }
+                for k in 1..idx.len() - 1 {
+                    m.triangles.push([idx[0], idx[k], idx[k + 1]]);
+                }
+            }
+            _ => {}
+        }
+    }
+    Ok(m)
+}
+
+#[derive(Clone, Copy, PartialEq)]
+enum PlyFormat {
+    Ascii,
+    Le,
+    Be,
+}
+
+fn ply_size(ty: &str) -> Option<usize> {
+    Some(match ty {
+        "char" | "uchar" | "int8" | "uint8" => 1,
+        "short" | "ushort" | "int16" | "uint16" => 2,
+        "int" | "uint" | "int32" | "uint32" | "float" | "float32" => 4,
+        "double" | "float64" => 8,
+        _ => return None,
+    })
+}
+
+fn ply_read(ty: &str, b: &[u8], fmt: PlyFormat) -> f64 {
+    macro_rules! rd {
+        ($t:ty) => {{
+            let a = b.try_into().expect("size checked");
+            (if fmt == PlyFormat::Le { <$t>::from_le_bytes(a) } else { <$t>::from_be_bytes(a) }) as f64
+        }};
+    }
+    match ty {
+        "char" | "int8" => b[0] as i8 as f64,
+        "uchar" | "uint8" => b[0] as f64,
+        "short" | "int16" => rd!(i16),
+        "ushort" | "uint16" => rd!(u16),
+        "int" | "int32" => rd!(i32),
+        "uint" | "uint32" => rd!(u32),
+        "float" | "float32" => rd!(f32),
+        _ => rd!(f64),
+    }
+}
+
+enum Prop {
+    Scalar(String, String),
+    List(String, String, String),
+}
+
+pub fn read_ply(path: &Path) -> Result<Mesh, DataError> {
+    let data = std::fs::read(path).map_err(|e| bad(path, format!("cannot read: {e}")))?;
+    let end = data.windows(10).position(|w| w == b"end_header").ok_or_else(|| bad(path, "not a PLY file (no end_header)"))?;
+    let header = String::from_utf8_lossy(&data[..end]).into_owned();
+    let mut body = end + 10;
+    if data.get(body) == Some(&b'\r') {
+        body += 1;
+    }
+    if data.get(body) == Some(&b'\n') {
+        body += 1;
+    }
+    if !header.starts_with("ply") {
+        return Err(bad(path, "not a PLY file"));
+    }
+    let mut fmt = PlyFormat::Ascii;
+    let mut elements: Vec<(String, usize, Vec<Prop>)> = Vec::new();
+    for line in header.lines() {
+        let t: Vec<&str> = line.split_whitespace().collect();
+        match t.as_slice() {
+            ["format", f, ..] => {
+                fmt = match *f {
+                    "ascii" => PlyFormat::Ascii,
+                    "binary_little_endian" => PlyFormat::Le,
+                    "binary_big_endian" => PlyFormat::Be,
+                    _ => return Err(bad(path, format!("unknown PLY format {f}"))),
+                }
+            }
+            ["element", name, n] => {
+                let n = n.parse().map_err(|_| bad(path, format!("bad element count in {line:?}")))?;
+                elements.push((name.to_string(), n, Vec::new()));
+            }
+            ["property", "list", ct, it, name] => {
+                let e = elements.last_mut().ok_or_else(|| bad(path, "property before element"))?;
+                e.2.push(Prop::List(ct.to_string(), it.to_string(), name.to_string()));
+            }
+            ["property", ty, name] => {
+                let e = elements.last_mut().ok_or_else(|| bad(path, "property before element"))?;
+                e.2.push(Prop::Scalar(ty.to_string(), name.to_string()));
+            }
+            _ => {}
+        }
+    }
+    let mut m = Mesh::default();
+    let text;
+    let mut ascii_tokens = if fmt == PlyFormat::Ascii {
+        text = String::from_utf8_lossy(&data[body..]).into_owned();
+        Some(text.split_whitespace())
+    } else {
+        None
+    };
+    let mut pos = body;
+    let trunc = || bad(path, "PLY data is truncated");
+    let mut next = |ty: &str| -> Result<f64, DataError> {
+        if let Some(toks) = ascii_tokens.as_mut() {
+            let t = toks.next().ok_or_else(trunc)?;
+            return t.parse::<f64>().map_err(|_| bad(path, format!("bad PLY value {t:?}")));
+        }
+        let n = ply_size(ty).ok_or_else(|| bad(path, format!("unknown PLY type {ty}")))?;
+        if pos + n > data.len() {
+            return Err(trunc());
+        }
+        let v = ply_read(ty, &data[pos..pos + n], fmt);
+        pos += n;
+        Ok(v)
+    };
+    for (name, count, props) in &elements {
+        for _ in 0..*count {
+            let mut xyz = [0.0; 3];
+            for p in props {
+                match p {
+                    Prop::Scalar(ty, pn) => {
+                        let v = next(ty)?;
+                        match pn.as_str() {
+                            "x" => xyz[0] = v,
+                            "y" => xyz[1] = v,
+                            "z" => xyz[2] = v,
+                            _ => {}
+                        }
+                    }
+                    Prop::List(ct, it, pn) => {
+                        let k = next(ct)? as usize;
+                        let idx: Vec<f64> = (0..k).map(|_| next(it)).collect::<Result<_, _>>()?;
+                        if name == "face" && (pn == "vertex_indices" || pn == "vertex_index") && k >= 3 {
+                            for j in 1..k - 1 {
+                                m.triangles.push([idx[0] as u32, idx[j] as u32, idx[j + 1] as u32]);
+                            }
+                        }
+                    }
+                }
+            }
+            if name == "vertex" {
+                m.positions.push(DVec3::from_array(xyz));
+            }
+        }
+    }
+    Ok(m)
+}
+
+/// A static 3-d kd-tree over points (indices into the slice it was built from).
+pub struct KdTree<'a> {
+    points: &'a [DVec3],
+    /// Implicit balanced tree: nodes[mid] of each range, split axis by depth.
+    order: Vec<u32>,
+}
+
+impl<'a> KdTree<'a> {
+    pub fn new(points: &'a [DVec3]) -> Self {
+        let mut order: Vec<u32> = (0..points.len() as u32).collect();
+        Self::build(points, &mut order, 0);
+        KdTree { points, order }
+    }
+
+    fn build(points: &[DVec3], idx: &mut [u32], depth: usize) {
+        if idx.len() <= 1 {
+            return;
+        }
+        let axis = depth % 3;
+        let mid = idx.len() / 2;
+        idx.select_nth_unstable_by(mid, |a, b| points[*a as usize][axis].total_cmp(&points[*b as usize][axis]));
+        let (l, r) = idx.split_at_mut(mid);
+        Self::build(points, l, depth + 1);
+        Self::build(points, &mut r[1..], depth + 1);
+    }
+
+    /// Index and squared distance of the nearest point to `q` (None if the tree is empty).
+    pub fn nearest(&self, q: DVec3) -> Option<(usize, f64)> {
+        let mut best = (usize::MAX, f64::INFINITY);
+        self.search(&self.order, 0, q, &mut best);
+        (best.0 != usize::MAX).then_some(best)
+    }
+
+    fn search(&self, idx: &[u32], depth: usize, q: DVec3, best: &mut (usize, f64)) {
+        if idx.is_empty() {
+            return;
+        }
+        let mid = idx.len() / 2;
+        let p = self.points[idx[mid] as usize];
+        let d2 = (p - q).length_squared();
+        if d2 < best.1 {
+            *best = (idx[mid] as usize, d2);
+        }
+        let axis = depth % 3;
+        let diff = q[axis] - p[axis];
+        let (near, far) = if diff < 0.0 { (&idx[..mid], &idx[mid + 1..]) } else { (&idx[mid + 1..], &idx[..mid]) };
+        self.search(near, depth + 1, q, best);
+        if diff * diff < best.1 {
+            self.search(far, depth + 1, q, best);
+        }
+    }
+}
+
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct MeshMetrics {
+    pub samples: usize,
+    pub accuracy: f64,
+    pub completeness: f64,
+    pub chamfer: f64,
+    pub normal_consistency: f64,
+}
+
+/// One direction: mean nearest distance and mean |n·n'| from `a` to `b`.
+fn directed(a: &[DVec3], an: &[DVec3], b: &[DVec3], bn: &[DVec3]) -> (f64, f64) {
+    use rayon::prelude::*;
+    let tree = KdTree::new(b);
+    let (d, nc) = a
+        .par_iter()
+        .zip(an)
+        .map(|(p, n)| {
+            let (j, d2) = tree.nearest(*p).expect("non-empty tree");
+            (d2.sqrt(), n.dot(bn[j]).abs())
+        })
+        .reduce(|| (0.0, 0.0), |x, y| (x.0 + y.0, x.1 + y.1));
+    (d / a.len() as f64, nc / a.len() as f64)
+}
+
+/// Chamfer distance and normal consistency between a predicted and a ground-truth mesh.
+pub fn compare_meshes(pred: &Mesh, gt: &Mesh, samples: usize, seed: u64) -> MeshMetrics {
+    let (pa, pn) = pred.sample(samples, seed);
+    let (ga, gn) = gt.sample(samples, seed);
+    let (acc, nc1) = directed(&pa, &pn, &ga, &gn);
+    let (comp, nc2) = directed(&ga, &gn, &pa, &pn);
+    MeshMetrics { samples, accuracy: acc, completeness: comp, chamfer: 0.5 * (acc + comp), normal_consistency: 0.5 * (nc1 + nc2) }
+}
+
+/// A UV sphere (for tests and benchmarks): `rings` × `segments`.
+pub fn uv_sphere(radius: f64, rings: usize, segments: usize) -> Mesh {
+    let mut m = Mesh::default();
+    m.positions.push(DVec3::new(0.0, 0.0, radius));
+    for r in 1..rings {
+        let th = std::f64::consts::PI * r as f64 / rings as f64;
+        for s in 0..segments {
+            let ph = 2.0 * std::f64::consts::PI * s as f64 / segments as f64;
+            m.positions.push(radius * DVec3::new(th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos()));
+        }
+    }
+    m.positions.push(DVec3::new(0.0, 0.0, -radius));
+    let ring = |r: usize, s: usize| (1 + (r - 1) * segments + s % segments) as u32;
+    let last = (m.positions.len() - 1) as u32;
+    for s in 0..segments {
+        m.triangles.push([0, ring(1, s), ring(1, s + 1)]);
+        m.triangles.push([last, ring(rings - 1, s + 1), ring(rings - 1, s)]);
+    }
+    for r in 1..rings - 1 {
+        for s in 0..segments {
+            let (a, b, c, d) = (ring(r, s), ring(r, s + 1), ring(r + 1, s), ring(r + 1, s + 1));
+            m.triangles.push([a, c, b]);
+            m.triangles.push([b, c, d]);
+        }
+    }
+    m
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn kdtree_matches_brute_force() {
+        let mut rng = crate::util::rng(7);
+        let pts: Vec<DVec3> = (0..500).map(|_| DVec3::new(rng.random(), rng.random(), rng.random())).collect();
+        let tree = KdTree::new(&pts);
+        for _ in 0..200 {
+            let q = DVec3::new(rng.random(), rng.random(), rng.random()) * 1.2 - 0.1;
+            let (i, d2) = tree.nearest(q).unwrap();
+            let bf = pts.iter().map(|p| (*p - q).length_squared()).fold(f64::INFINITY, f64::min);
+            assert_eq!(d2, bf);
+            assert_eq!((pts[i] - q).length_squared(), bf);
+        }
+    }
+
+    #[test]
+    fn identical_meshes_are_perfect_and_offset_spheres_measure_the_offset() {
+        let a = uv_sphere(1.0, 48, 96);
+        let m = compare_meshes(&a, &a, 20_000, 1);
+        assert_eq!(m.chamfer, 0.0);
+        assert!((m.normal_consistency - 1.0).abs() < 1e-12);
+        // radius 1 vs 1.05: every nearest distance is ~0.05 (sampling adds a little lateral offset)
+        let b = uv_sphere(1.05, 48, 96);
+        let m = compare_meshes(&b, &a, 20_000, 2);
+        assert!((m.chamfer - 0.05).abs() < 0.005, "{m:?}");
+        assert!(m.normal_consistency > 0.98, "{m:?}");
+    }
+
+    #[test]
+    fn tilted_plane_normal_consistency_is_cos_angle() {
+        let square = |tilt: f64| {
+            let (c, s) = (tilt.cos(), tilt.sin());
+            Mesh {
+                positions: vec![
+                    DVec3::new(-1.0, -c, -s),
+                    DVec3::new(1.0, -c, -s),
+                    DVec3::new(1.0, c, s),
+                    DVec3::new(-1.0, c, s),
+                ],
+                triangles: vec![[0, 1, 2], [0, 2, 3]],
+            }
+        };
+        let m = compare_meshes(&square(0.3), &square(0.0), 5_000, 3);
+        assert!((m.normal_consistency - 0.3f64.cos()).abs() < 1e-9, "{m:?}");
+    }
+
+    #[test]
+    fn obj_and_ply_readers_agree() {
+        let dir = tempfile::tempdir().unwrap();
+        let obj = dir.path().join("q.obj");
+        std::fs::write(&obj, "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nf 1/1 2/2 3/3 4/4\n").unwrap();
+        let a = Mesh::read(&obj).unwrap();
+        assert_eq!(a.triangles, vec![[0, 1, 2], [0, 2, 3]]);
+        let ply = dir.path().join("q.ply");
+        let mut bytes = b"ply\nformat binary_little_endian 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n".to_vec();
+        for p in &a.positions {
+            for c in p.to_array() {
+                bytes.extend_from_slice(&(c as f32).to_le_bytes());
+            }
+        }
+        bytes.push(4);
+        for i in 0..4i32 {
+            bytes.extend_from_slice(&i.to_le_bytes());
+        }
+        std::fs::write(&ply, &bytes).unwrap();
+        let b = Mesh::read(&ply).unwrap();
+        assert_eq!(b.triangles, a.triangles);
+        assert_eq!(b.positions, a.positions);
+        assert!((a.area() - 1.0).abs() < 1e-12);
+        let ascii = dir.path().join("a.ply");
+        std::fs::write(&ascii, "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n").unwrap();
+        assert_eq!(Mesh::read(&ascii).unwrap().triangles.len(), 1);
+        std::fs::write(dir.path().join("bad.obj"), "v 0 0 0\nf 1 2 3\n").unwrap();
+        let e = Mesh::read(&dir.path().join("bad.obj")).unwrap_err().to_string();
+        assert!(e.contains("bad.obj") && e.contains("out of range"), "{e}");
+    }
+}

@@ -1,0 +1,54 @@
+//! The bundled example scene (tests/data/example, made by scripts/make_scene.py --scene spot): view counts,
+//! resolution, and projections of known object positions.
+
+use std::path::{Path, PathBuf};
+
+use glam::DVec3;
+use pii_bake::eval::mesh::Mesh;
+use pii_bake::scene::{load, normalise, Format, ReadOptions, Split};
+
+fn example() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/example")
+}
+
+#[test]
+fn example_scene_cameras_and_known_points() {
+    let scene = load(&example(), &ReadOptions::default()).unwrap();
+    assert_eq!(scene.format, Format::Transforms);
+    assert_eq!(scene.views_in(Split::Train).count(), 24);
+    assert_eq!(scene.views_in(Split::Test).count(), 4);
+    let meta: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(example().join("scene.json")).unwrap()).unwrap();
+    let probes: Vec<DVec3> = meta["probe_points"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| DVec3::new(p[0].as_f64().unwrap(), p[1].as_f64().unwrap(), p[2].as_f64().unwrap()))
+        .collect();
+    assert!(probes.len() >= 8);
+    let n = &scene.normalisation;
+    assert_eq!(n.up_axis_name, "+Z", "Blender world is Z-up");
+    for v in &scene.views {
+        let c = &v.camera;
+        assert_eq!((c.width, c.height), (200, 200));
+        // The generator aims every camera at the bound's centre = the normalised origin, which must land
+        // exactly on the image centre (pixel-corner convention: (w/2, h/2)).
+        let o = c.project(DVec3::ZERO).unwrap();
+        assert!((o.x - 100.0).abs() < 1e-4 && (o.y - 100.0).abs() < 1e-4, "{}: origin at {o}", v.name);
+        assert!(c.center().length() > 1.0, "camera inside the unit sphere");
+        // Every surface point projects inside the object's silhouette (alpha) in every view.
+        for p in &probes {
+            let q = c.project(n.to_normalised(*p)).unwrap();
+            let mut best = 0.0f32;
+            for dy in [-1.0, 0.0, 1.0] {
+                for dx in [-1.0, 0.0, 1.0] {
+                    best = best.max(v.mask_at(q.x + dx, q.y + dy));
+                }
+            }
+            assert!(best >= 0.5, "{}: surface point {p} projects to {q}, outside the silhouette", v.name);
+        }
+    }
+    // The ground-truth mesh lies inside the unit sphere after normalisation (bound radius x 1.1 -> 1).
+    let mesh = Mesh::read(&example().join("gt/mesh.obj")).unwrap();
+    let r = mesh.positions.iter().map(|p| n.to_normalised(*p).length()).fold(0.0, f64::max);
+    assert!(r <= 1.0 / normalise::MARGIN + 1e-5 && r > 0.85, "{r}");
+}

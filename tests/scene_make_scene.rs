@@ -1,0 +1,58 @@
+//! scripts/make_scene.py is deterministic: two runs at a tiny size give byte-identical files
+//! (render_log.json, which holds wall-clock times, excepted). Needs Blender's `bpy` through PII_PYTHON.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn python() -> String {
+    std::env::var("PII_PYTHON").unwrap_or_else(|_| {
+        panic!("PII_PYTHON is not set: run the tests with `bash scripts/test.sh` (it points PII_PYTHON at the venv with bpy)")
+    })
+}
+
+fn run(out: &Path) {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/make_scene.py");
+    let st = Command::new(python())
+        .arg(&script)
+        .args(["--scene", "spot", "--width", "32", "--height", "32", "--train", "2", "--test", "1"])
+        .args(["--samples", "4", "--gt-samples", "2", "--env-width", "64", "--threads", "2", "--out"])
+        .arg(out)
+        .output()
+        .expect("cannot start PII_PYTHON");
+    assert!(st.status.success(), "make_scene.py failed:\n{}", String::from_utf8_lossy(&st.stderr));
+}
+
+fn files(dir: &Path) -> Vec<PathBuf> {
+    let mut out = Vec::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.push(p.strip_prefix(dir).unwrap().to_path_buf());
+            }
+        }
+    }
+    out.sort();
+    out
+}
+
+#[test]
+fn make_scene_is_deterministic_and_readable() {
+    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    run(a.path());
+    run(b.path());
+    let (fa, fb) = (files(a.path()), files(b.path()));
+    assert_eq!(fa, fb);
+    for f in fa.iter().filter(|f| f.file_name().unwrap() != "render_log.json") {
+        let (x, y) = (std::fs::read(a.path().join(f)).unwrap(), std::fs::read(b.path().join(f)).unwrap());
+        assert!(x == y, "{} differs between runs", f.display());
+    }
+    for needed in ["transforms_train.json", "test/r_000_albedo.png", "test/r_000_roughness.png", "test/r_000_normal.png", "env/train.exr", "gt/mesh.obj"] {
+        assert!(fa.contains(&PathBuf::from(needed)), "{needed} missing");
+    }
+    let scene = pii_bake::scene::load(a.path(), &Default::default()).unwrap();
+    assert_eq!(scene.views.len(), 3);
+}
