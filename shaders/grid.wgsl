@@ -41,7 +41,7 @@ fn shape_sdf(id: u32, p: vec3<f32>) -> f32 {
                 bowl = abs(length(q) - r) - t;
             }
             let ball = length(p - vec3<f32>(0.0, -0.44, 0.0)) - 0.3;
-            return smin_poly(bowl, ball, 0.04);
+            return smin_poly(bowl, ball, 0.1);
         }
         default: {
             let b = vec3<f32>(0.55, 0.35, 0.45);

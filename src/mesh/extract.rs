@@ -62,7 +62,16 @@ pub fn marching_tetrahedra(grid: &GridSpec, values: &[f32]) -> Mesh {
         *edge_vertex.entry(key).or_insert_with(|| {
             let va = values[grid.index(lo[0], lo[1], lo[2])];
             let vb = values[grid.index(hi[0], hi[1], hi[2])];
+            // Snap to the end nodes when within 1e-4 of them: such vertices then coincide exactly
+            // and are welded below instead of leaving slivers of zero area.
             let t = (va / (va - vb)).clamp(0.0, 1.0);
+            let t = if t < 1e-4 {
+                0.0
+            } else if t > 1.0 - 1e-4 {
+                1.0
+            } else {
+                t
+            };
             let pa = grid.node(lo[0], lo[1], lo[2]);
             let pb = grid.node(hi[0], hi[1], hi[2]);
             positions.push([
@@ -149,5 +158,7 @@ pub fn marching_tetrahedra(grid: &GridSpec, values: &[f32]) -> Mesh {
             }
         }
     }
-    Mesh { positions, indices }
+    let mut mesh = Mesh { positions, indices };
+    super::topology::weld_exact(&mut mesh);
+    mesh
 }

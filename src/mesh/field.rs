@@ -159,7 +159,7 @@ impl AnalyticShape {
                     ((qx * qx + qy * qy).sqrt() - r).abs()
                 } - t;
                 let ball = (x * x + (y + 0.44).powi(2) + z * z).sqrt() - 0.3;
-                smin(bowl, ball, 0.04)
+                smin(bowl, ball, 0.1)
             }
             Self::RoundedBox => {
                 let (bx, by, bz, rad) = (0.55f64, 0.35f64, 0.45f64, 0.1f64);

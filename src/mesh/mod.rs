@@ -115,6 +115,8 @@ pub enum MeshError {
     },
     #[error("{0}")]
     Backend(#[from] BackendError),
+    #[error("{0}")]
+    Config(String),
     #[error("mesh resolution {0} is out of range (8..=2048)")]
     Resolution(usize),
 }
@@ -159,6 +161,12 @@ pub struct MeshStats {
     pub error_bound: f32,
     /// meshoptimizer's own error estimate for the result (scene units).
     pub simplify_error: f32,
+    /// The target handed to meshoptimizer last (tightened until the measured deviation holds).
+    pub simplify_target: f32,
+    /// Largest |sdf| over the result's vertices, edge midpoints and centroids (scene units).
+    pub measured_deviation: f32,
+    /// Triangles facing against the SDF gradient after simplification (0 unless the retries ran out).
+    pub folded_triangles: usize,
     pub triangles: usize,
     pub vertices: usize,
     pub watertight: bool,
@@ -254,6 +262,46 @@ pub fn simplify(mesh: &Mesh, error_bound: f32) -> (Mesh, f32) {
     (out, err)
 }
 
+/// Largest |sdf| over the vertices, edge midpoints and centroids of `mesh` (its distance to
+/// the surface wherever the field is a true distance), and the number of triangles that face
+/// against the SDF gradient at their centroid (folded).
+pub fn surface_deviation(
+    backend: &Backend,
+    sdf: &dyn SdfField,
+    mesh: &Mesh,
+) -> Result<(f32, usize), BackendError> {
+    let mut pts = mesh.positions.clone();
+    let first_centroid = pts.len();
+    for t in mesh.triangles() {
+        let [a, b, c] = t.map(|i| mesh.positions[i as usize]);
+        let mix = |w: [f32; 3]| [0, 1, 2].map(|k| w[0] * a[k] + w[1] * b[k] + w[2] * c[k]);
+        pts.push(mix([1.0 / 3.0; 3]));
+        pts.push(mix([0.5, 0.5, 0.0]));
+        pts.push(mix([0.0, 0.5, 0.5]));
+        pts.push(mix([0.5, 0.0, 0.5]));
+    }
+    let mut worst = 0.0f32;
+    let mut folded = 0;
+    let chunk = 1 << 18;
+    for (ci, part) in pts.chunks(chunk).enumerate() {
+        let s = sdf.eval(backend, part)?;
+        worst = s.values.iter().fold(worst, |w, x| w.max(x.abs()));
+        for (k, g) in s.gradients.iter().enumerate() {
+            let i = ci * chunk + k;
+            if i >= first_centroid && (i - first_centroid) % 4 == 0 {
+                let t = (i - first_centroid) / 4;
+                let tri = [
+                    mesh.indices[3 * t],
+                    mesh.indices[3 * t + 1],
+                    mesh.indices[3 * t + 2],
+                ];
+                folded += (dot(tri_normal(&mesh.positions, tri), *g) < 0.0) as usize;
+            }
+        }
+    }
+    Ok((worst, folded))
+}
+
 /// Unit normals at `points` from the SDF gradient.
 pub fn sdf_normals(
     backend: &Backend,
@@ -308,10 +356,55 @@ pub fn build_mesh(
 
     let t = Instant::now();
     let bound = cfg.error_bound.unwrap_or(0.5 * grid.spacing);
-    let (mesh, err) = simplify(&mesh, bound);
+    if !(bound.is_finite() && bound > 0.0) {
+        return Err(MeshError::Config(format!(
+            "simplification error bound must be > 0, got {bound}"
+        )));
+    }
+    // meshoptimizer bounds vertex-to-plane distances, not how far the middle of a new, larger
+    // triangle sags off a curved surface; so measure the real deviation against the field
+    // (|sdf| at vertices, edge midpoints and centroids) and tighten its target until it holds.
+    // Try a ladder of targets; take the first result that is within the bound, closed and
+    // unfolded, else the closed result that comes nearest, else the unsimplified mesh.
+    let mut best: Option<(Mesh, f32, f32, f32, usize)> = None;
+    let key = |dev: f32, folded: usize| (folded, ((dev - bound).max(0.0) * 1e6) as u64);
+    for factor in [1.0f32, 0.7, 0.5, 0.35, 0.25] {
+        let target = bound * factor;
+        let (m, e) = simplify(&mesh, target);
+        let (d, f) = surface_deviation(backend, sdf, &m)?;
+        let closed = topology::check_closed(&m).is_ok();
+        tracing::debug!("simplify target {target}: meshopt error {e}, deviation {d}, folded {f}, closed {closed}");
+        if !closed {
+            continue;
+        }
+        let done = d <= bound && f == 0;
+        if best.as_ref().is_none_or(|b| key(d, f) < key(b.3, b.4)) {
+            best = Some((m, e, target, d, f));
+        }
+        if done {
+            break;
+        }
+    }
+    let (mesh, err, target, dev, folded) = match best {
+        Some(b) => b,
+        None => {
+            tracing::warn!(
+                "simplification kept breaking the surface of {}; exporting the unsimplified mesh",
+                sdf.name()
+            );
+            let (d, f) = surface_deviation(backend, sdf, &mesh)?;
+            (mesh, 0.0, 0.0, d, f)
+        }
+    };
+    if dev > bound {
+        tracing::warn!("measured deviation {dev} exceeds the error bound {bound} (grid too coarse for the bound?)");
+    }
     stats.seconds_simplify = t.elapsed().as_secs_f64();
     stats.error_bound = bound;
     stats.simplify_error = err;
+    stats.simplify_target = target;
+    stats.measured_deviation = dev;
+    stats.folded_triangles = folded;
     stats.triangles = mesh.triangle_count();
     stats.vertices = mesh.positions.len();
     stats.watertight = topology::check_closed(&mesh).is_ok();

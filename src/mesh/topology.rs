@@ -52,6 +52,29 @@ pub fn largest_component(mesh: &Mesh) -> (Mesh, usize) {
     (out, components)
 }
 
+/// Merge vertices with bit-identical positions and drop the triangles that collapse (a repeated
+/// vertex). Returns the number of triangles dropped.
+pub fn weld_exact(mesh: &mut Mesh) -> usize {
+    let mut first: HashMap<[u32; 3], u32> = HashMap::new();
+    let remap: Vec<u32> = mesh
+        .positions
+        .iter()
+        .enumerate()
+        .map(|(i, p)| *first.entry(p.map(f32::to_bits)).or_insert(i as u32))
+        .collect();
+    let before = mesh.triangle_count();
+    let mut indices = Vec::with_capacity(mesh.indices.len());
+    for t in mesh.triangles() {
+        let t = t.map(|v| remap[v as usize]);
+        if t[0] != t[1] && t[1] != t[2] && t[0] != t[2] {
+            indices.extend_from_slice(&t);
+        }
+    }
+    mesh.indices = indices;
+    mesh.compact();
+    before - mesh.triangle_count()
+}
+
 /// Directed boundary edges: (a, b) used by a triangle whose reverse (b, a) is not.
 pub fn boundary_edges(mesh: &Mesh) -> Vec<(u32, u32)> {
     let mut directed: HashMap<(u32, u32), u32> = HashMap::new();
