@@ -74,17 +74,28 @@ impl Backend {
         shape: AnalyticShape,
         grid: &GridSpec,
     ) -> Result<Vec<f32>, BackendError> {
+        self.grid_analytic_sdf_slabs(shape, grid, MAX_SLAB_FLOATS)
+    }
+
+    /// [`Backend::grid_analytic_sdf`] with at most `max_slab_floats` values per GPU dispatch
+    /// (whole z-planes; tests use small slabs to exercise the slab loop).
+    pub fn grid_analytic_sdf_slabs(
+        &self,
+        shape: AnalyticShape,
+        grid: &GridSpec,
+        max_slab_floats: usize,
+    ) -> Result<Vec<f32>, BackendError> {
         match self {
             Backend::Cpu(_) => Ok(grid_analytic_sdf_cpu(shape, grid)),
             Backend::Gpu(g) => {
                 let [nx, ny, nz] = grid.dims;
                 let plane = nx * ny;
-                if plane > MAX_SLAB_FLOATS {
+                if plane > max_slab_floats {
                     return Err(BackendError::Shape(format!(
                         "grid plane of {nx}x{ny} nodes is too large"
                     )));
                 }
-                let slab = (MAX_SLAB_FLOATS / plane).clamp(1, nz);
+                let slab = (max_slab_floats / plane).clamp(1, nz);
                 let src = shaders::with_lib(GRID_WGSL);
                 let k = g.kernel(
                     "grid",
