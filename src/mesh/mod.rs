@@ -366,11 +366,19 @@ pub fn build_mesh(
     // (|sdf| at vertices, edge midpoints and centroids) and tighten its target until it holds.
     // Try a ladder of targets; take the first result that is within the bound, closed and
     // unfolded, else the closed result that comes nearest, else the unsimplified mesh.
+    // One pass over the full mesh at a fifth of the bound; the ladder then works on that
+    // smaller mesh (every candidate is still measured against the field itself).
+    let (pre, _) = simplify(&mesh, 0.2 * bound);
+    let pre = if topology::check_closed(&pre).is_ok() {
+        pre
+    } else {
+        mesh.clone()
+    };
     let mut best: Option<(Mesh, f32, f32, f32, usize)> = None;
     let key = |dev: f32, folded: usize| (folded, ((dev - bound).max(0.0) * 1e6) as u64);
     for factor in [1.0f32, 0.7, 0.5, 0.35, 0.25] {
         let target = bound * factor;
-        let (m, e) = simplify(&mesh, target);
+        let (m, e) = simplify(&pre, target);
         let (d, f) = surface_deviation(backend, sdf, &m)?;
         let closed = topology::check_closed(&m).is_ok();
         tracing::debug!("simplify target {target}: meshopt error {e}, deviation {d}, folded {f}, closed {closed}");

@@ -75,20 +75,32 @@ pub fn weld_exact(mesh: &mut Mesh) -> usize {
     before - mesh.triangle_count()
 }
 
-/// Directed boundary edges: (a, b) used by a triangle whose reverse (b, a) is not.
-pub fn boundary_edges(mesh: &Mesh) -> Vec<(u32, u32)> {
-    let mut directed: HashMap<(u32, u32), u32> = HashMap::new();
+/// All directed edges `(a << 32) | b`, sorted.
+fn sorted_directed_edges(mesh: &Mesh) -> Vec<u64> {
+    use rayon::prelude::*;
+    let mut e: Vec<u64> = Vec::with_capacity(mesh.indices.len());
     for t in mesh.triangles() {
         for k in 0..3 {
-            *directed.entry((t[k], t[(k + 1) % 3])).or_default() += 1;
+            e.push(((t[k] as u64) << 32) | t[(k + 1) % 3] as u64);
         }
     }
-    let mut out: Vec<(u32, u32)> = directed
-        .keys()
-        .filter(|&&(a, b)| !directed.contains_key(&(b, a)))
-        .copied()
+    e.par_sort_unstable();
+    e
+}
+
+fn reverse(e: u64) -> u64 {
+    (e << 32) | (e >> 32)
+}
+
+/// Directed boundary edges: (a, b) used by a triangle whose reverse (b, a) is not.
+pub fn boundary_edges(mesh: &Mesh) -> Vec<(u32, u32)> {
+    let e = sorted_directed_edges(mesh);
+    let mut out: Vec<(u32, u32)> = e
+        .iter()
+        .filter(|&&x| e.binary_search(&reverse(x)).is_err())
+        .map(|&x| ((x >> 32) as u32, x as u32))
         .collect();
-    out.sort_unstable();
+    out.dedup();
     out
 }
 
@@ -155,20 +167,15 @@ pub fn check_closed(mesh: &Mesh) -> Result<(), String> {
     if mesh.indices.is_empty() {
         return Err("the mesh has no triangles".into());
     }
-    let mut directed: HashMap<(u32, u32), u32> = HashMap::new();
-    let mut degenerate = 0;
-    for t in mesh.triangles() {
-        if t[0] == t[1] || t[1] == t[2] || t[0] == t[2] {
-            degenerate += 1;
-        }
-        for k in 0..3 {
-            *directed.entry((t[k], t[(k + 1) % 3])).or_default() += 1;
-        }
-    }
-    let repeated = directed.values().filter(|&&c| c > 1).count();
-    let open = directed
-        .keys()
-        .filter(|&&(a, b)| !directed.contains_key(&(b, a)))
+    let degenerate = mesh
+        .triangles()
+        .filter(|t| t[0] == t[1] || t[1] == t[2] || t[0] == t[2])
+        .count();
+    let e = sorted_directed_edges(mesh);
+    let repeated = e.windows(2).filter(|w| w[0] == w[1]).count();
+    let open = e
+        .iter()
+        .filter(|&&x| e.binary_search(&reverse(x)).is_err())
         .count();
     if degenerate + repeated + open > 0 {
         return Err(format!(
