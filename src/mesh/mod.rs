@@ -79,7 +79,8 @@ pub(crate) fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
 pub(crate) fn norm(a: [f32; 3]) -> f32 {
     dot(a, a).sqrt()
 }
-pub(crate) fn normalize(a: [f32; 3]) -> [f32; 3] {
+/// Unit vector along `a` (+Y for a zero vector).
+pub fn normalize(a: [f32; 3]) -> [f32; 3] {
     let n = norm(a);
     if n > 1e-20 {
         [a[0] / n, a[1] / n, a[2] / n]
