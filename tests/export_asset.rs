@@ -44,6 +44,7 @@ fn export(
         mesh: MeshConfig {
             resolution: 64,
             error_bound: None,
+            ..Default::default()
         },
         texture: TextureSize::Fixed(256),
         usdz: true,

@@ -24,6 +24,7 @@ fn blender_renders_of_the_export_match_the_analytic_reference() {
         mesh: MeshConfig {
             resolution: 96,
             error_bound: Some(0.003),
+            ..Default::default()
         },
         texture: TextureSize::Fixed(512),
         metres_per_unit: s,
@@ -136,6 +137,7 @@ fn one_lobe_environment_lights_the_same_side_in_blender_and_usd() {
         mesh: MeshConfig {
             resolution: 48,
             error_bound: None,
+            ..Default::default()
         },
         texture: TextureSize::Fixed(256),
         env_width: 256,

@@ -135,6 +135,7 @@ fn extracted_and_simplified_meshes_are_close_closed_and_outward() {
             &MeshConfig {
                 resolution: 64,
                 error_bound: Some(bound),
+                ..Default::default()
             },
         )
         .unwrap();
@@ -204,6 +205,7 @@ fn bowl_keeps_the_ball_joined_and_drops_nothing() {
         &MeshConfig {
             resolution: 64,
             error_bound: None,
+            ..Default::default()
         },
     )
     .unwrap();
@@ -230,6 +232,7 @@ fn no_surface_in_the_box_is_a_clear_error() {
         &MeshConfig {
             resolution: 16,
             error_bound: None,
+            ..Default::default()
         },
     )
     .unwrap_err();
@@ -249,6 +252,7 @@ fn no_surface_in_the_box_is_a_clear_error() {
         &MeshConfig {
             resolution: 16,
             error_bound: None,
+            ..Default::default()
         },
     )
     .unwrap_err();
@@ -271,6 +275,7 @@ fn surface_touching_the_box_is_capped_closed() {
         &MeshConfig {
             resolution: 48,
             error_bound: None,
+            ..Default::default()
         },
     )
     .unwrap();

@@ -42,6 +42,7 @@ pub fn run(args: &BenchExportArgs, ctx: &Context) -> anyhow::Result<()> {
             &MeshConfig {
                 resolution: res,
                 error_bound: None,
+                ..Default::default()
             },
         )?;
         let st = &built.stats;
@@ -88,6 +89,7 @@ pub fn run(args: &BenchExportArgs, ctx: &Context) -> anyhow::Result<()> {
             mesh: MeshConfig {
                 resolution: res,
                 error_bound: None,
+                ..Default::default()
             },
             texture: TextureSize::Fixed(args.textures.iter().copied().min().unwrap_or(1024)),
             ..Default::default()

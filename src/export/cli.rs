@@ -57,6 +57,7 @@ pub fn run(args: &ExportArgs, ctx: &Context) -> anyhow::Result<()> {
         mesh: MeshConfig {
             resolution: args.resolution,
             error_bound: args.error_bound,
+            ..Default::default()
         },
         texture: args.texture,
         metres_per_unit: args.metres_per_unit,

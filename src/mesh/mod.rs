@@ -130,6 +130,9 @@ pub struct MeshConfig {
     /// Simplification error bound in scene units; `None` derives it from the grid spacing
     /// (half a cell).
     pub error_bound: Option<f32>,
+    /// Largest angle (degrees) allowed between the interpolated vertex normals and the SDF
+    /// gradient inside triangles: keeps flat faces next to rounded edges from shading bent.
+    pub normal_tolerance_deg: f32,
 }
 
 impl Default for MeshConfig {
@@ -137,6 +140,7 @@ impl Default for MeshConfig {
         Self {
             resolution: 256,
             error_bound: None,
+            normal_tolerance_deg: 10.0,
         }
     }
 }
@@ -168,6 +172,8 @@ pub struct MeshStats {
     pub measured_deviation: f32,
     /// Triangles facing against the SDF gradient after simplification (0 unless the retries ran out).
     pub folded_triangles: usize,
+    /// Largest angle between the shading normals and the SDF gradient on the result (degrees).
+    pub normal_angle_deg: f32,
     pub triangles: usize,
     pub vertices: usize,
     pub watertight: bool,
@@ -263,44 +269,66 @@ pub fn simplify(mesh: &Mesh, error_bound: f32) -> (Mesh, f32) {
     (out, err)
 }
 
-/// Largest |sdf| over the vertices, edge midpoints and centroids of `mesh` (its distance to
-/// the surface wherever the field is a true distance), and the number of triangles that face
-/// against the SDF gradient at their centroid (folded).
+/// How far a mesh is from the field's surface.
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct Deviation {
+    /// Largest |sdf| over the vertices, edge midpoints and centroids (scene units): the distance
+    /// to the surface wherever the field is a true distance.
+    pub distance: f32,
+    /// Triangles whose face normal points against the SDF gradient at their centroid.
+    pub folded: usize,
+    /// Largest angle (degrees) at those samples between the shading normal (the vertex normals
+    /// interpolated) and the SDF gradient.
+    pub normal_angle_deg: f32,
+}
+
+/// Measure `mesh` against the field (see [`Deviation`]).
 pub fn surface_deviation(
     backend: &Backend,
     sdf: &dyn SdfField,
     mesh: &Mesh,
-) -> Result<(f32, usize), BackendError> {
+) -> Result<Deviation, BackendError> {
+    const W: [[f32; 3]; 4] = [
+        [1.0 / 3.0; 3],
+        [0.5, 0.5, 0.0],
+        [0.0, 0.5, 0.5],
+        [0.5, 0.0, 0.5],
+    ];
+    let nv = mesh.positions.len();
     let mut pts = mesh.positions.clone();
-    let first_centroid = pts.len();
     for t in mesh.triangles() {
         let [a, b, c] = t.map(|i| mesh.positions[i as usize]);
-        let mix = |w: [f32; 3]| [0, 1, 2].map(|k| w[0] * a[k] + w[1] * b[k] + w[2] * c[k]);
-        pts.push(mix([1.0 / 3.0; 3]));
-        pts.push(mix([0.5, 0.5, 0.0]));
-        pts.push(mix([0.0, 0.5, 0.5]));
-        pts.push(mix([0.5, 0.0, 0.5]));
-    }
-    let mut worst = 0.0f32;
-    let mut folded = 0;
-    let chunk = 1 << 18;
-    for (ci, part) in pts.chunks(chunk).enumerate() {
-        let s = sdf.eval(backend, part)?;
-        worst = s.values.iter().fold(worst, |w, x| w.max(x.abs()));
-        for (k, g) in s.gradients.iter().enumerate() {
-            let i = ci * chunk + k;
-            if i >= first_centroid && (i - first_centroid) % 4 == 0 {
-                let t = (i - first_centroid) / 4;
-                let tri = [
-                    mesh.indices[3 * t],
-                    mesh.indices[3 * t + 1],
-                    mesh.indices[3 * t + 2],
-                ];
-                folded += (dot(tri_normal(&mesh.positions, tri), *g) < 0.0) as usize;
-            }
+        for w in W {
+            pts.push([0, 1, 2].map(|k| w[0] * a[k] + w[1] * b[k] + w[2] * c[k]));
         }
     }
-    Ok((worst, folded))
+    let mut values = Vec::with_capacity(pts.len());
+    let mut grads = Vec::with_capacity(pts.len());
+    for part in pts.chunks(1 << 18) {
+        let s = sdf.eval(backend, part)?;
+        values.extend(s.values);
+        grads.extend(s.gradients);
+    }
+    let mut dev = Deviation {
+        distance: values.iter().fold(0.0f32, |w, x| w.max(x.abs())),
+        ..Default::default()
+    };
+    let vn: Vec<[f32; 3]> = grads[..nv].iter().map(|&g| normalize(g)).collect();
+    let mut min_cos = 1.0f32;
+    for (t, tri) in mesh.triangles().enumerate() {
+        for (j, w) in W.iter().enumerate() {
+            let g = grads[nv + 4 * t + j];
+            if j == 0 && dot(tri_normal(&mesh.positions, tri), g) < 0.0 {
+                dev.folded += 1;
+            }
+            let n = normalize(
+                [0, 1, 2].map(|k| (0..3).map(|c| w[c] * vn[tri[c] as usize][k]).sum::<f32>()),
+            );
+            min_cos = min_cos.min(dot(n, normalize(g)));
+        }
+    }
+    dev.normal_angle_deg = min_cos.clamp(-1.0, 1.0).acos().to_degrees();
+    Ok(dev)
 }
 
 /// Unit normals at `points` from the SDF gradient.
@@ -375,36 +403,45 @@ pub fn build_mesh(
     } else {
         mesh.clone()
     };
-    let mut best: Option<(Mesh, f32, f32, f32, usize)> = None;
-    let key = |dev: f32, folded: usize| (folded, ((dev - bound).max(0.0) * 1e6) as u64);
-    for factor in [1.0f32, 0.7, 0.5, 0.35, 0.25] {
+    let tol = cfg.normal_tolerance_deg;
+    let excess = |d: &Deviation| {
+        (
+            d.folded,
+            ((d.distance - bound).max(0.0) * 1e6) as u64,
+            ((d.normal_angle_deg - tol).max(0.0) * 1e3) as u64,
+        )
+    };
+    let mut best: Option<(Mesh, f32, f32, Deviation)> = None;
+    for factor in [1.0f32, 0.7, 0.5, 0.35, 0.25, 0.15] {
         let target = bound * factor;
         let (m, e) = simplify(&pre, target);
-        let (d, f) = surface_deviation(backend, sdf, &m)?;
+        let d = surface_deviation(backend, sdf, &m)?;
         let closed = topology::check_closed(&m).is_ok();
-        tracing::debug!("simplify target {target}: meshopt error {e}, deviation {d}, folded {f}, closed {closed}");
+        tracing::debug!("simplify target {target}: meshopt error {e}, {d:?}, closed {closed}");
         if !closed {
             continue;
         }
-        let done = d <= bound && f == 0;
-        if best.as_ref().is_none_or(|b| key(d, f) < key(b.3, b.4)) {
-            best = Some((m, e, target, d, f));
+        let done = excess(&d) == (0, 0, 0);
+        if best.as_ref().is_none_or(|b| excess(&d) < excess(&b.3)) {
+            best = Some((m, e, target, d));
         }
         if done {
             break;
         }
     }
-    let (mesh, err, target, dev, folded) = match best {
+    let (mesh, err, target, dev) = match best {
         Some(b) => b,
         None => {
             tracing::warn!(
                 "simplification kept breaking the surface of {}; exporting the unsimplified mesh",
                 sdf.name()
             );
-            let (d, f) = surface_deviation(backend, sdf, &mesh)?;
-            (mesh, 0.0, 0.0, d, f)
+            let d = surface_deviation(backend, sdf, &mesh)?;
+            (mesh, 0.0, 0.0, d)
         }
     };
+    let (folded, normal_angle) = (dev.folded, dev.normal_angle_deg);
+    let dev = dev.distance;
     if dev > bound {
         tracing::warn!("measured deviation {dev} exceeds the error bound {bound} (grid too coarse for the bound?)");
     }
@@ -414,6 +451,7 @@ pub fn build_mesh(
     stats.simplify_target = target;
     stats.measured_deviation = dev;
     stats.folded_triangles = folded;
+    stats.normal_angle_deg = normal_angle;
     stats.triangles = mesh.triangle_count();
     stats.vertices = mesh.positions.len();
     stats.watertight = topology::check_closed(&mesh).is_ok();
