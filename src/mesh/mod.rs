@@ -376,6 +376,7 @@ pub fn build_mesh(
     stats.extracted_triangles = raw.triangle_count();
     stats.seconds_extract = t.elapsed().as_secs_f64();
 
+    tracing::debug!("extracted mesh: closed {:?}", topology::check_closed(&raw));
     let t = Instant::now();
     let (mut mesh, components) = topology::largest_component(&raw);
     stats.components = components;
@@ -395,14 +396,14 @@ pub fn build_mesh(
     // (|sdf| at vertices, edge midpoints and centroids) and tighten its target until it holds.
     // Try a ladder of targets; take the first result that is within the bound, closed and
     // unfolded, else the closed result that comes nearest, else the unsimplified mesh.
-    // One pass over the full mesh at a fifth of the bound; the ladder then works on that
-    // smaller mesh (every candidate is still measured against the field itself).
-    let (pre, _) = simplify(&mesh, 0.2 * bound);
-    let pre = if topology::check_closed(&pre).is_ok() {
-        pre
-    } else {
-        mesh.clone()
-    };
+    // One pass over the full mesh at a quarter of the bound (looser if that breaks it); the
+    // ladder then works on that smaller mesh (every candidate is still measured against the
+    // field itself).
+    let pre = [0.3f32]
+        .iter()
+        .map(|f| simplify(&mesh, f * bound).0)
+        .find(|m| topology::check_closed(m).is_ok())
+        .unwrap_or_else(|| mesh.clone());
     let tol = cfg.normal_tolerance_deg;
     let excess = |d: &Deviation| {
         (
@@ -412,12 +413,13 @@ pub fn build_mesh(
         )
     };
     let mut best: Option<(Mesh, f32, f32, Deviation)> = None;
-    for factor in [1.0f32, 0.7, 0.5, 0.35, 0.25, 0.15] {
+    for factor in [1.0f32, 0.7, 0.5, 0.4] {
         let target = bound * factor;
         let (m, e) = simplify(&pre, target);
         let d = surface_deviation(backend, sdf, &m)?;
-        let closed = topology::check_closed(&m).is_ok();
-        tracing::debug!("simplify target {target}: meshopt error {e}, {d:?}, closed {closed}");
+        let closed = topology::check_closed(&m);
+        tracing::debug!("simplify target {target}: meshopt error {e}, {d:?}, closed {closed:?}");
+        let closed = closed.is_ok();
         if !closed {
             continue;
         }
