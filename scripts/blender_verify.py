@@ -168,8 +168,9 @@ def load_pixels(path):
 
 
 def psnr(a, b):
+    """PSNR in dB of images in [0, 1], capped at 99 dB (identical images) to stay valid JSON."""
     mse = float(np.mean((a - b) ** 2))
-    return float("inf") if mse == 0 else 10.0 * math.log10(1.0 / mse)
+    return 99.0 if mse <= 10.0**-9.9 else min(99.0, 10.0 * math.log10(1.0 / mse))
 
 
 def ssim(a, b):
