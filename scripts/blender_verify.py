@@ -154,8 +154,34 @@ def analytic_reference(args):
         nt.links.new(mix.outputs["Result"], bsdf.inputs["Base Color"])
         r = madd(madd(xyz.outputs["X"], 0.5 / s, 0.5), 0.6, 0.2)
         nt.links.new(r, bsdf.inputs["Roughness"])
+    elif args.material == "checker":
+        # parity(floor(x_s / c) + floor(y_s / c) + floor(z_s / c)), c = 0.25 scene units;
+        # z_s = -Y / s.
+        c = 0.25
+
+        def math(op, *inputs):
+            n = nt.nodes.new("ShaderNodeMath")
+            n.operation = op
+            for i, v in enumerate(inputs):
+                if isinstance(v, float):
+                    n.inputs[i].default_value = v
+                else:
+                    nt.links.new(v, n.inputs[i])
+            return n.outputs[0]
+
+        fx = math("FLOOR", math("MULTIPLY", xyz.outputs["X"], 1.0 / (s * c)))
+        fy = math("FLOOR", math("MULTIPLY", xyz.outputs["Z"], 1.0 / (s * c)))
+        fz = math("FLOOR", math("MULTIPLY", xyz.outputs["Y"], -1.0 / (s * c)))
+        parity = math("FLOORED_MODULO", math("ADD", math("ADD", fx, fy), fz), 2.0)
+        mix = nt.nodes.new("ShaderNodeMix")
+        mix.data_type = "RGBA"
+        nt.links.new(parity, mix.inputs["Factor"])
+        mix.inputs["A"].default_value = (0.8, 0.1, 0.1, 1.0)
+        mix.inputs["B"].default_value = (0.9, 0.9, 0.85, 1.0)
+        nt.links.new(mix.outputs["Result"], bsdf.inputs["Base Color"])
+        nt.links.new(math("MULTIPLY_ADD", parity, 0.5, 0.3), bsdf.inputs["Roughness"])
     else:
-        raise SystemExit(f"no Blender reference for the material {args.material!r} (gradient)")
+        raise SystemExit(f"no Blender reference for the material {args.material!r} (gradient, checker)")
     obj.data.materials.append(mat)
 
 
@@ -219,7 +245,7 @@ def main():
     ap.add_argument("--out", required=True)
     ap.add_argument("--env", help="environment EXR (default: ASSET_DIR/env.exr)")
     ap.add_argument("--analytic", choices=["sphere", "torus"])
-    ap.add_argument("--material", default="gradient")
+    ap.add_argument("--material", default="gradient", choices=["gradient", "checker"])
     ap.add_argument("--metres-per-unit", type=float, default=1.0)
     ap.add_argument("--origin-shift", type=float, nargs=3, default=[0.0, 0.0, 0.0])
     ap.add_argument("--reference-dir", help="reference images ref_cam{i}.png (e.g. photos)")

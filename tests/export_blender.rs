@@ -13,12 +13,16 @@ use pii_bake::mesh::MeshConfig;
 
 #[test]
 fn blender_renders_of_the_export_match_the_analytic_reference() {
-    for shape in [AnalyticShape::Sphere, AnalyticShape::Torus] {
-        fidelity(shape);
+    for (shape, material) in [
+        (AnalyticShape::Sphere, AnalyticMaterial::Gradient),
+        (AnalyticShape::Torus, AnalyticMaterial::Gradient),
+        (AnalyticShape::Sphere, AnalyticMaterial::Checker),
+    ] {
+        fidelity(shape, material);
     }
 }
 
-fn fidelity(shape: AnalyticShape) {
+fn fidelity(shape: AnalyticShape, material: AnalyticMaterial) {
     let python = std::env::var("PII_PYTHON").unwrap_or_else(|_| {
         panic!("PII_PYTHON is not set: run the tests with `bash scripts/test.sh` (it installs bpy)")
     });
@@ -40,7 +44,7 @@ fn fidelity(shape: AnalyticShape) {
     let report = export_asset(
         &Backend::cpu(),
         &AnalyticSdf::new(shape),
-        &AnalyticMaterial::Gradient,
+        &material,
         None,
         &cfg,
         &asset,
@@ -68,7 +72,7 @@ fn fidelity(shape: AnalyticShape) {
             "--analytic",
             shape.name(),
             "--material",
-            "gradient",
+            material.name(),
             "--size",
             "80",
             "--samples",
@@ -105,8 +109,9 @@ fn fidelity(shape: AnalyticShape) {
         let psnr = p["min_psnr"].as_f64().unwrap();
         let ssim = p["min_ssim"].as_f64().unwrap();
         eprintln!(
-            "{}: {name}: min PSNR {psnr:.1} dB, min SSIM {ssim:.4}",
-            shape.name()
+            "{} {}: {name}: min PSNR {psnr:.1} dB, min SSIM {ssim:.4}",
+            shape.name(),
+            material.name()
         );
         assert!(
             psnr >= 35.0 && ssim >= 0.98,
