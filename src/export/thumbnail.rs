@@ -59,8 +59,8 @@ pub fn render(geo: &AssetGeometry, albedo: &[[f32; 3]], tex_size: usize, size: u
                 let mut n = [0.0f32; 3];
                 let mut uv = [0.0f32; 2];
                 for k in 0..3 {
-                    for j in 0..3 {
-                        n[j] += w[k] * geo.normals[v[k]][j];
+                    for (nj, vj) in n.iter_mut().zip(geo.normals[v[k]]) {
+                        *nj += w[k] * vj;
                     }
                     uv[0] += w[k] * geo.uvs[v[k]][0];
                     uv[1] += w[k] * geo.uvs[v[k]][1];

@@ -89,7 +89,7 @@ fn sorted_directed_edges(mesh: &Mesh) -> Vec<u64> {
 }
 
 fn reverse(e: u64) -> u64 {
-    (e << 32) | (e >> 32)
+    e.rotate_right(32)
 }
 
 /// Directed boundary edges: (a, b) used by a triangle whose reverse (b, a) is not.
