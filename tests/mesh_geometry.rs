@@ -285,3 +285,52 @@ fn surface_touching_the_box_is_capped_closed() {
     let h = res.stats.grid.unwrap().spacing;
     assert!(hi[1] <= 0.5 && hi[1] > 0.5 - h, "cap at {}", hi[1]);
 }
+
+/// A field that returns NaN inside a ball (a broken network, say).
+struct NanField;
+
+impl pii_bake::mesh::field::SdfField for NanField {
+    fn name(&self) -> String {
+        "nan-field".into()
+    }
+    fn eval(
+        &self,
+        _backend: &Backend,
+        points: &[[f32; 3]],
+    ) -> Result<pii_bake::mesh::field::SdfSamples, pii_bake::backend::BackendError> {
+        let values = points
+            .iter()
+            .map(|p| {
+                let r = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt();
+                if r < 0.3 {
+                    f32::NAN
+                } else {
+                    r - 0.5
+                }
+            })
+            .collect();
+        Ok(pii_bake::mesh::field::SdfSamples {
+            values,
+            gradients: vec![[0.0, 1.0, 0.0]; points.len()],
+        })
+    }
+}
+
+#[test]
+fn non_finite_field_values_are_a_clear_error() {
+    // Through the default (batched) grid evaluation of a non-analytic field.
+    let err = build_mesh(
+        &Backend::cpu(),
+        &NanField,
+        &MeshConfig {
+            resolution: 24,
+            ..Default::default()
+        },
+    )
+    .unwrap_err();
+    assert!(matches!(err, MeshError::NonFinite { .. }), "{err}");
+    assert!(
+        err.to_string().contains("nan-field") && err.to_string().contains("non-finite"),
+        "{err}"
+    );
+}
