@@ -119,11 +119,7 @@ pub struct AssetGeometry {
 
 impl AssetGeometry {
     pub fn bounds(&self) -> ([f32; 3], [f32; 3]) {
-        mesh::Mesh {
-            positions: self.positions.clone(),
-            indices: vec![],
-        }
-        .bounds()
+        mesh::bounds_of(&self.positions)
     }
 }
 
@@ -261,11 +257,7 @@ pub fn export_asset(
         .iter()
         .map(|p| [0, 1, 2].map(|k| p[k] * s + cfg.scene_offset_m[k]))
         .collect();
-    let (mlo, mhi) = mesh::Mesh {
-        positions: positions.clone(),
-        indices: vec![],
-    }
-    .bounds();
+    let (mlo, mhi) = mesh::bounds_of(&positions);
     let shift = [-(mlo[0] + mhi[0]) * 0.5, -mlo[1], -(mlo[2] + mhi[2]) * 0.5];
     for p in &mut positions {
         for k in 0..3 {
@@ -380,7 +372,7 @@ pub fn export_asset(
     }
     let seconds_write = t.elapsed().as_secs_f64();
 
-    let report = ExportReport {
+    let mut report = ExportReport {
         name: cfg.name.clone(),
         sdf: sdf.name(),
         material: material.name(),
@@ -399,7 +391,6 @@ pub fn export_asset(
         seconds_total: t_total.elapsed().as_secs_f64(),
         config: cfg.clone(),
     };
-    let mut report = report;
     report.files.push("export_report.json".into());
     let text = serde_json::to_string_pretty(&report)
         .map_err(|e| DataError::new(out_dir, e.to_string()))?;

@@ -37,16 +37,9 @@ impl Mesh {
             .sum()
     }
     pub fn bounds(&self) -> ([f32; 3], [f32; 3]) {
-        let mut lo = [f32::INFINITY; 3];
-        let mut hi = [f32::NEG_INFINITY; 3];
-        for p in &self.positions {
-            for k in 0..3 {
-                lo[k] = lo[k].min(p[k]);
-                hi[k] = hi[k].max(p[k]);
-            }
-        }
-        (lo, hi)
+        bounds_of(&self.positions)
     }
+
     /// Drop vertices no triangle uses (keeps order).
     pub fn compact(&mut self) {
         let mut remap = vec![u32::MAX; self.positions.len()];
@@ -61,6 +54,19 @@ impl Mesh {
         }
         self.positions = positions;
     }
+}
+
+/// Axis-aligned bounds (min, max) of points; (+inf, -inf) when empty.
+pub fn bounds_of(points: &[[f32; 3]]) -> ([f32; 3], [f32; 3]) {
+    let mut lo = [f32::INFINITY; 3];
+    let mut hi = [f32::NEG_INFINITY; 3];
+    for p in points {
+        for k in 0..3 {
+            lo[k] = lo[k].min(p[k]);
+            hi[k] = hi[k].max(p[k]);
+        }
+    }
+    (lo, hi)
 }
 
 pub(crate) fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
