@@ -185,6 +185,30 @@ def analytic_reference(args):
     obj.data.materials.append(mat)
 
 
+def import_summary(result):
+    """What an import produced: operator result, meshes, materials and their images."""
+    images = []
+    for img in bpy.data.images:
+        if img.type != "IMAGE" or img.source != "FILE" and not img.packed_file:
+            continue
+        if img.name.lower().endswith(".exr") or (img.filepath or "").lower().endswith(".exr"):
+            continue  # the environment
+        images.append(
+            {
+                "name": img.name,
+                "colorspace": img.colorspace_settings.name,
+                "size": list(img.size),
+                "has_data": bool(img.has_data or img.size[0] > 0),
+            }
+        )
+    return {
+        "result": sorted(result),
+        "meshes": [o.name for o in bpy.context.scene.objects if o.type == "MESH"],
+        "materials": [m.name for m in bpy.data.materials if m.users > 0],
+        "images": images,
+    }
+
+
 def load_pixels(path):
     img = bpy.data.images.load(path)
     w, h = img.size
@@ -269,14 +293,15 @@ def main():
 
     scene = reset_scene(args)
     make_world(scene, env)
-    bpy.ops.import_scene.gltf(filepath=glbs[0])
+    report["glb_import"] = import_summary(bpy.ops.import_scene.gltf(filepath=glbs[0]))
     renders["glb"] = render_cameras(scene, cameras, os.path.join(args.out, "glb"))
 
     if not args.skip_usd:
         scene = reset_scene(args)
         # A world must exist before the import for the DomeLight to become it.
         make_world(scene, None)
-        bpy.ops.wm.usd_import(filepath=os.path.join(args.asset_dir, "lookdev.usda"))
+        result = bpy.ops.wm.usd_import(filepath=os.path.join(args.asset_dir, "lookdev.usda"))
+        report["usd_import"] = import_summary(result)
         world_has_texture = any(n.type == "TEX_ENVIRONMENT" for n in scene.world.node_tree.nodes)
         report["usd_dome_light_became_world"] = world_has_texture
         if not world_has_texture:

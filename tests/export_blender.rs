@@ -95,6 +95,36 @@ fn fidelity(shape: AnalyticShape, material: AnalyticMaterial) {
         serde_json::json!(true),
         "{text}"
     );
+    // Both importers bring in one mesh with one material and its two textures, albedo as sRGB
+    // and ORM as Non-Color, at full size.
+    for import in ["glb_import", "usd_import"] {
+        let imp = &rep[import];
+        assert_eq!(
+            imp["result"],
+            serde_json::json!(["FINISHED"]),
+            "{import}: {imp}"
+        );
+        assert_eq!(
+            imp["meshes"].as_array().map(Vec::len),
+            Some(1),
+            "{import}: {imp}"
+        );
+        assert_eq!(
+            imp["materials"].as_array().map(Vec::len),
+            Some(1),
+            "{import}: {imp}"
+        );
+        let images = imp["images"].as_array().expect("images");
+        let mut spaces: Vec<&str> = images
+            .iter()
+            .map(|i| i["colorspace"].as_str().unwrap_or(""))
+            .collect();
+        spaces.sort();
+        assert_eq!(spaces, ["Non-Color", "sRGB"], "{import}: {imp}");
+        for i in images {
+            assert_eq!(i["size"], serde_json::json!([512, 512]), "{import}: {imp}");
+        }
+    }
     let pair = |name: &str| {
         rep["pairs"]
             .as_array()
