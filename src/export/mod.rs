@@ -1,4 +1,399 @@
-//! glTF, USD and EXR writers, thumbnails; the `export` command.
+//! The asset writer: [`export_asset`] turns any [`SdfField`] + [`MaterialField`] (analytic now,
+//! the trained model later) into a folder holding
+//!
+//! | file | what |
+//! | --- | --- |
+//! | `<name>.glb` | glTF 2.0, embedded sRGB albedo PNG + linear ORM PNG (G = roughness, B = 0) |
+//! | `asset.usda`, `payload.usda` | the USD component (see [`usd`]) |
+//! | `textures/albedo.png`, `textures/orm.png` | the textures USD references |
+//! | `lookdev.usda` | the asset under a DomeLight on `env.exr` |
+//! | `env.exr`, `env_sgs.json` | the environment (latlong, OpenEXR/USD convention) and its SG lobes |
+//! | `<name>.usdz` | optional single-file package |
+//! | `.thumbs/256x256/<file>.png` | previews of the .glb and the USD asset |
+//! | `export_report.json` | what was chosen (resolution, bound, texture size) and the timings |
+//!
+//! Positions are in metres: `p_m = p_scene · metres_per_unit + scene_offset_m`, then moved so the
+//! asset's origin is its bottom centre (the shift is in the report). Every file is written to a
+//! temporary name and renamed.
 
 pub mod bench;
 pub mod cli;
+pub mod gltf;
+pub mod thumbnail;
+pub mod usd;
+pub mod usdz;
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use crate::backend::{Backend, BackendError};
+use crate::bake::{self, BakeStats};
+use crate::image_io;
+use crate::mesh::field::{MaterialField, SdfField};
+use crate::mesh::uv::{self, UvError};
+use crate::mesh::{self, MeshConfig, MeshError, MeshStats};
+use crate::sg::env::{EnvSgs, LatlongConvention, SgLobe};
+use crate::util::{atomic_write, DataError};
+
+/// Texture size: chosen from the surface area and the material's detail, or fixed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+pub enum TextureSize {
+    Auto,
+    Fixed(u32),
+}
+
+impl std::str::FromStr for TextureSize {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        if s == "auto" {
+            return Ok(Self::Auto);
+        }
+        let n: u32 = s
+            .parse()
+            .map_err(|_| format!("{s:?} is neither `auto` nor a number"))?;
+        if !n.is_power_of_two() || !(16..=8192).contains(&n) {
+            return Err(format!(
+                "texture size {n} must be a power of two in 16..=8192"
+            ));
+        }
+        Ok(Self::Fixed(n))
+    }
+}
+
+/// Everything the export needs besides the fields.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct ExportConfig {
+    /// Asset name `[a-z][a-z0-9_-]*` (file names, USD prim names).
+    pub name: String,
+    pub mesh: MeshConfig,
+    pub texture: TextureSize,
+    /// Scene units → metres (undoes the scene normalisation).
+    pub metres_per_unit: f32,
+    /// Added after scaling (metres), before the origin is moved to the bottom centre.
+    pub scene_offset_m: [f32; 3],
+    /// Also write `<name>.usdz`.
+    pub usdz: bool,
+    /// Width of the environment EXR (height = width / 2).
+    pub env_width: usize,
+    /// Recorded in the glTF `asset.extras` and the report (source images, settings, ...).
+    pub provenance: serde_json::Value,
+}
+
+impl Default for ExportConfig {
+    fn default() -> Self {
+        Self {
+            name: "asset".into(),
+            mesh: MeshConfig::default(),
+            texture: TextureSize::Auto,
+            metres_per_unit: 1.0,
+            scene_offset_m: [0.0; 3],
+            usdz: false,
+            env_width: 512,
+            provenance: serde_json::json!({}),
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ExportError {
+    #[error("invalid export settings: {0}")]
+    Config(String),
+    #[error(transparent)]
+    Data(#[from] DataError),
+    #[error(transparent)]
+    Mesh(#[from] MeshError),
+    #[error(transparent)]
+    Uv(#[from] UvError),
+    #[error(transparent)]
+    Backend(#[from] BackendError),
+}
+
+/// The final geometry in metres with glTF UVs (what every writer sees).
+#[derive(Clone, Debug, Default)]
+pub struct AssetGeometry {
+    pub positions: Vec<[f32; 3]>,
+    pub normals: Vec<[f32; 3]>,
+    pub uvs: Vec<[f32; 2]>,
+    pub indices: Vec<u32>,
+}
+
+impl AssetGeometry {
+    pub fn bounds(&self) -> ([f32; 3], [f32; 3]) {
+        mesh::bounds_of(&self.positions)
+    }
+}
+
+/// What was written and chosen, with timings (also saved as `export_report.json`).
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct ExportReport {
+    pub name: String,
+    pub sdf: String,
+    pub material: String,
+    pub backend: String,
+    pub mesh: MeshStats,
+    pub uv_charts: u32,
+    pub uv_utilization: f32,
+    pub texture_size: u32,
+    pub texture_size_reason: String,
+    pub bake: BakeStats,
+    /// Translation applied (metres) to put the origin at the bottom centre.
+    pub origin_shift_m: [f32; 3],
+    pub bounds_m: ([f32; 3], [f32; 3]),
+    pub files: Vec<PathBuf>,
+    pub seconds_unwrap: f64,
+    pub seconds_write: f64,
+    pub seconds_total: f64,
+    pub config: ExportConfig,
+}
+
+/// A neutral test environment: a warm key light from the upper front right, a cool fill and a
+/// broad sky, so relit renders show both the albedo and the roughness.
+pub fn default_environment() -> EnvSgs {
+    let n = |v: [f32; 3]| mesh::normalize(v);
+    EnvSgs {
+        lobes: vec![
+            SgLobe {
+                axis: n([0.5, 0.7, 0.5]),
+                sharpness: 40.0,
+                amplitude: [6.0, 5.5, 5.0],
+            },
+            SgLobe {
+                axis: n([-0.6, 0.3, -0.4]),
+                sharpness: 8.0,
+                amplitude: [0.6, 0.7, 0.9],
+            },
+            SgLobe {
+                axis: [0.0, 1.0, 0.0],
+                sharpness: 1.0,
+                amplitude: [0.5, 0.55, 0.6],
+            },
+            SgLobe {
+                axis: [0.0, -1.0, 0.0],
+                sharpness: 1.0,
+                amplitude: [0.25, 0.22, 0.2],
+            },
+        ],
+    }
+}
+
+fn valid_name(name: &str) -> bool {
+    let mut c = name.chars();
+    matches!(c.next(), Some('a'..='z'))
+        && c.all(|ch| ch.is_ascii_lowercase() || ch.is_ascii_digit() || ch == '_' || ch == '-')
+}
+
+/// Fail early (before any heavy work) when `out_dir` cannot be created or written.
+fn check_writable(out_dir: &Path) -> Result<(), DataError> {
+    std::fs::create_dir_all(out_dir)
+        .map_err(|e| DataError::new(out_dir, format!("cannot create output folder: {e}")))?;
+    let probe = out_dir.join(format!(".pii-bake-probe-{}", std::process::id()));
+    std::fs::write(&probe, b"")
+        .map_err(|e| DataError::new(out_dir, format!("output folder is not writable: {e}")))?;
+    let _ = std::fs::remove_file(&probe);
+    Ok(())
+}
+
+/// The export entry point: mesh, unwrap, bake and write the asset folder (see the module docs).
+/// `env`: the environment to ship (None → [`default_environment`]).
+pub fn export_asset(
+    backend: &Backend,
+    sdf: &dyn SdfField,
+    material: &dyn MaterialField,
+    env: Option<&EnvSgs>,
+    cfg: &ExportConfig,
+    out_dir: &Path,
+) -> Result<ExportReport, ExportError> {
+    let t_total = Instant::now();
+    if !valid_name(&cfg.name) {
+        return Err(ExportError::Config(format!(
+            "asset name {:?} must match [a-z][a-z0-9_-]*",
+            cfg.name
+        )));
+    }
+    if !(cfg.metres_per_unit.is_finite() && cfg.metres_per_unit > 0.0) {
+        return Err(ExportError::Config(format!(
+            "metres_per_unit must be > 0, got {}",
+            cfg.metres_per_unit
+        )));
+    }
+    if cfg.env_width < 8 {
+        return Err(ExportError::Config(format!(
+            "env_width {} is too small",
+            cfg.env_width
+        )));
+    }
+    check_writable(out_dir)?;
+
+    // Geometry (scene units).
+    let built = mesh::build_mesh(backend, sdf, &cfg.mesh)?;
+    let (lo, hi) = built.mesh.bounds();
+    let object_size = (0..3).map(|k| (hi[k] - lo[k]) as f64).fold(0.0, f64::max);
+    let (texture_size, reason) = match cfg.texture {
+        TextureSize::Fixed(n) => (n, "fixed by the user".to_string()),
+        TextureSize::Auto => {
+            let area = built.mesh.area();
+            let n = bake::choose_texture_size(area, object_size, material.feature_size());
+            (
+                n,
+                format!(
+                    "surface area {area:.4} scene units², object size {object_size:.3}, material feature size {:?}",
+                    material.feature_size()
+                ),
+            )
+        }
+    };
+
+    let t = Instant::now();
+    let padding = (texture_size / 128).max(2);
+    let uvm = uv::unwrap(&built.mesh, &built.normals, texture_size, padding)?;
+    let seconds_unwrap = t.elapsed().as_secs_f64();
+
+    let baked = bake::bake(backend, sdf, material, &uvm, texture_size as usize)?;
+
+    // Scene units → metres, origin at the bottom centre.
+    let s = cfg.metres_per_unit;
+    let mut positions: Vec<[f32; 3]> = uvm
+        .positions
+        .iter()
+        .map(|p| [0, 1, 2].map(|k| p[k] * s + cfg.scene_offset_m[k]))
+        .collect();
+    let (mlo, mhi) = mesh::bounds_of(&positions);
+    let shift = [-(mlo[0] + mhi[0]) * 0.5, -mlo[1], -(mlo[2] + mhi[2]) * 0.5];
+    for p in &mut positions {
+        for k in 0..3 {
+            p[k] += shift[k];
+        }
+    }
+    let geo = AssetGeometry {
+        positions,
+        normals: uvm.normals.clone(),
+        uvs: uvm.uvs.clone(),
+        indices: uvm.indices.clone(),
+    };
+
+    // Writers.
+    let t = Instant::now();
+    let n = baked.size;
+    let albedo_flat: Vec<f32> = baked.albedo.iter().flatten().copied().collect();
+    let orm_flat: Vec<f32> = baked
+        .roughness
+        .iter()
+        .flat_map(|&r| [1.0, r, 0.0])
+        .collect();
+    let albedo_png = image_io::encode_png8(n, n, 3, &albedo_flat, true)
+        .map_err(|e| DataError::new(out_dir, e))?;
+    let orm_png =
+        image_io::encode_png8(n, n, 3, &orm_flat, false).map_err(|e| DataError::new(out_dir, e))?;
+    let material_name = format!("{}_mat", cfg.name.replace('-', "_"));
+    let prim_name = cfg.name.replace('-', "_");
+    let provenance = serde_json::json!({
+        "generator": format!("pii-bake {}", env!("CARGO_PKG_VERSION")),
+        "sdf": sdf.name(),
+        "material": material.name(),
+        "resolution": cfg.mesh.resolution,
+        "error_bound_scene_units": built.stats.error_bound,
+        "metres_per_unit": cfg.metres_per_unit,
+        "texture_size": texture_size,
+        "origin_shift_m": shift,
+        "source": cfg.provenance,
+    });
+    let mut files: Vec<PathBuf> = Vec::new();
+    let default_env = default_environment();
+    let env = env.unwrap_or(&default_env);
+    crate::sg::env::write_latlong_exr(
+        env,
+        &out_dir.join("env.exr"),
+        cfg.env_width,
+        LatlongConvention::OpenExrUsd,
+    )?;
+    files.push("env.exr".into());
+    env.write_json(&out_dir.join("env_sgs.json"))?;
+    files.push("env_sgs.json".into());
+    let mut put = |rel: &str, bytes: &[u8]| -> Result<(), DataError> {
+        let p = out_dir.join(rel);
+        atomic_write(&p, bytes)?;
+        files.push(PathBuf::from(rel));
+        Ok(())
+    };
+    let glb_name = format!("{}.glb", cfg.name);
+    let glb = gltf::glb_bytes(
+        &geo,
+        &albedo_png,
+        &orm_png,
+        &material_name,
+        &prim_name,
+        &provenance,
+    )
+    .map_err(|e| DataError::new(out_dir.join(&glb_name), e))?;
+    put(&glb_name, &glb)?;
+    put(usd::ALBEDO, &albedo_png)?;
+    put(usd::ORM, &orm_png)?;
+    let thumb_usd = format!(".thumbs/256x256/{}.png", usd::ASSET);
+    let payload = usd::payload_layer(&prim_name, &material_name, &geo);
+    let asset = usd::asset_layer(&prim_name, env!("CARGO_PKG_VERSION"), &thumb_usd);
+    put(usd::PAYLOAD, payload.as_bytes())?;
+    put(usd::ASSET, asset.as_bytes())?;
+    put(
+        usd::LOOKDEV,
+        usd::lookdev_layer(&prim_name, "env.exr").as_bytes(),
+    )?;
+
+    let thumb = thumbnail::render(&geo, &baked.albedo, n, 256);
+    let thumb_png =
+        image_io::encode_png8(256, 256, 4, &thumb, true).map_err(|e| DataError::new(out_dir, e))?;
+    put(&format!(".thumbs/256x256/{glb_name}.png"), &thumb_png)?;
+    put(&thumb_usd, &thumb_png)?;
+    if cfg.usdz {
+        let usdz_name = format!("{}.usdz", cfg.name);
+        let bytes = usdz::usdz_bytes(&[
+            usdz::Entry {
+                name: usd::ASSET,
+                data: asset.as_bytes(),
+            },
+            usdz::Entry {
+                name: usd::PAYLOAD,
+                data: payload.as_bytes(),
+            },
+            usdz::Entry {
+                name: usd::ALBEDO,
+                data: &albedo_png,
+            },
+            usdz::Entry {
+                name: usd::ORM,
+                data: &orm_png,
+            },
+            usdz::Entry {
+                name: &thumb_usd,
+                data: &thumb_png,
+            },
+        ])
+        .map_err(|e| DataError::new(out_dir.join(&usdz_name), e))?;
+        put(&usdz_name, &bytes)?;
+    }
+    let seconds_write = t.elapsed().as_secs_f64();
+
+    let mut report = ExportReport {
+        name: cfg.name.clone(),
+        sdf: sdf.name(),
+        material: material.name(),
+        backend: backend.describe(),
+        mesh: built.stats,
+        uv_charts: uvm.charts,
+        uv_utilization: uvm.utilization,
+        texture_size,
+        texture_size_reason: reason,
+        bake: baked.stats,
+        origin_shift_m: shift,
+        bounds_m: geo.bounds(),
+        files: files.clone(),
+        seconds_unwrap,
+        seconds_write,
+        seconds_total: t_total.elapsed().as_secs_f64(),
+        config: cfg.clone(),
+    };
+    report.files.push("export_report.json".into());
+    let text = serde_json::to_string_pretty(&report)
+        .map_err(|e| DataError::new(out_dir, e.to_string()))?;
+    atomic_write(&out_dir.join("export_report.json"), text.as_bytes())?;
+    Ok(report)
+}

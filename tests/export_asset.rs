@@ -1,0 +1,242 @@
+//! End-to-end export of analytic assets: the Khronos glTF-Validator reports 0 errors and 0
+//! warnings, usd-core's validators (scripts/usd_check.py) report no error on asset.usda,
+//! lookdev.usda and the .usdz, the textures follow the conventions, and bad output folders
+//! give clear errors.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use pii_bake::backend::Backend;
+use pii_bake::export::{export_asset, ExportConfig, ExportError, TextureSize};
+use pii_bake::mesh::field::{AnalyticMaterial, AnalyticSdf, AnalyticShape};
+use pii_bake::mesh::MeshConfig;
+
+fn python() -> String {
+    std::env::var("PII_PYTHON")
+        .unwrap_or_else(|_| panic!("PII_PYTHON is not set: run the tests with `bash scripts/test.sh` (it sets up bpy/usd-core)"))
+}
+
+fn validator() -> PathBuf {
+    std::env::var("PII_GLTF_VALIDATOR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|_| Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/gltf_validate.mjs"))
+}
+
+fn run(cmd: &mut Command) -> (bool, String) {
+    let out = cmd
+        .output()
+        .unwrap_or_else(|e| panic!("cannot run {cmd:?}: {e}"));
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (out.status.success(), text)
+}
+
+fn export(
+    shape: AnalyticShape,
+    material: AnalyticMaterial,
+    dir: &Path,
+) -> pii_bake::export::ExportReport {
+    let cfg = ExportConfig {
+        name: shape.name().to_string(),
+        mesh: MeshConfig {
+            resolution: 64,
+            error_bound: None,
+            ..Default::default()
+        },
+        texture: TextureSize::Fixed(256),
+        usdz: true,
+        metres_per_unit: 0.25,
+        env_width: 64,
+        ..Default::default()
+    };
+    export_asset(
+        &Backend::cpu(),
+        &AnalyticSdf::new(shape),
+        &material,
+        None,
+        &cfg,
+        dir,
+    )
+    .unwrap()
+}
+
+#[test]
+fn exported_assets_pass_gltf_and_usd_validators() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut glbs = Vec::new();
+    let mut usds = Vec::new();
+    for (shape, material) in [
+        (AnalyticShape::Bowl, AnalyticMaterial::Checker),
+        (AnalyticShape::Torus, AnalyticMaterial::Gradient),
+    ] {
+        let out = dir.path().join(shape.name());
+        let report = export(shape, material, &out);
+        for f in &report.files {
+            assert!(out.join(f).is_file(), "{} missing", f.display());
+        }
+        // Metres and origin at the bottom centre.
+        let (lo, hi) = report.bounds_m;
+        assert!(
+            lo[1].abs() < 1e-6 && (lo[0] + hi[0]).abs() < 1e-5 && (lo[2] + hi[2]).abs() < 1e-5,
+            "{lo:?} {hi:?}"
+        );
+        assert!(
+            hi[0] - lo[0] < 0.25 * 2.0 && hi[0] - lo[0] > 0.25 * 0.9,
+            "scaled by metres_per_unit"
+        );
+        assert!(report.mesh.watertight);
+        glbs.push(out.join(format!("{}.glb", shape.name())));
+        for f in ["asset.usda", "lookdev.usda"] {
+            usds.push(out.join(f));
+        }
+        usds.push(out.join(format!("{}.usdz", shape.name())));
+        check_textures(&out);
+        let thumb =
+            image::open(out.join(format!(".thumbs/256x256/{}.glb.png", shape.name()))).unwrap();
+        assert_eq!((thumb.width(), thumb.height()), (256, 256));
+    }
+    let (ok, text) = run(Command::new("node").arg(validator()).args(&glbs));
+    assert!(ok, "glTF-Validator: {text}");
+    for line in text.lines().filter(|l| l.starts_with('{')) {
+        let v: serde_json::Value = serde_json::from_str(line).unwrap();
+        assert_eq!(
+            (v["errors"].as_u64(), v["warnings"].as_u64()),
+            (Some(0), Some(0)),
+            "{line}"
+        );
+    }
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/usd_check.py");
+    let (ok, text) = run(Command::new(python()).arg(&script).args(&usds));
+    assert!(ok, "USD validation: {text}");
+    assert_eq!(
+        text.lines().filter(|l| l.contains("\"errors\": 0")).count(),
+        usds.len(),
+        "{text}"
+    );
+}
+
+/// Power-of-two textures; ORM has R = 1, B = 0; no iCCP/gAMA chunks.
+fn check_textures(out: &Path) {
+    for name in ["albedo.png", "orm.png"] {
+        let p = out.join("textures").join(name);
+        let bytes = std::fs::read(&p).unwrap();
+        for chunk in [b"iCCP", b"gAMA"] {
+            assert!(
+                !bytes.windows(4).any(|w| w == chunk),
+                "{name} has a {} chunk",
+                String::from_utf8_lossy(chunk)
+            );
+        }
+        let img = image::load_from_memory(&bytes).unwrap().to_rgb8();
+        assert!(img.width().is_power_of_two() && img.width() == img.height());
+        if name == "orm.png" {
+            assert!(
+                img.pixels().all(|p| p[0] == 255 && p[2] == 0),
+                "ORM must have R = 1 and B = 0"
+            );
+            let g: Vec<u8> = img.pixels().map(|p| p[1]).collect();
+            assert!(g.iter().min() != g.iter().max(), "roughness varies");
+        }
+    }
+}
+
+#[test]
+fn the_usd_checker_catches_a_broken_asset() {
+    // Guards the validator wiring itself: a payload without upAxis and with a missing texture fails.
+    let dir = tempfile::tempdir().unwrap();
+    export(
+        AnalyticShape::Sphere,
+        AnalyticMaterial::Gradient,
+        dir.path(),
+    );
+    let payload = std::fs::read_to_string(dir.path().join("payload.usda")).unwrap();
+    let broken = payload
+        .replace("    upAxis = \"Y\"\n", "")
+        .replace("textures/albedo.png", "textures/missing.png");
+    std::fs::write(dir.path().join("broken.usda"), broken).unwrap();
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/usd_check.py");
+    let (ok, text) = run(Command::new(python())
+        .arg(&script)
+        .arg(dir.path().join("broken.usda")));
+    assert!(!ok, "{text}");
+    assert!(
+        text.contains("UpAxis") && text.contains("missing.png"),
+        "{text}"
+    );
+}
+
+#[test]
+fn unwritable_output_folder_is_a_clear_error_before_any_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let blocker = dir.path().join("not-a-folder");
+    std::fs::write(&blocker, b"x").unwrap();
+    let out = blocker.join("asset");
+    let err = export_asset(
+        &Backend::cpu(),
+        &AnalyticSdf::new(AnalyticShape::Sphere),
+        &AnalyticMaterial::Checker,
+        None,
+        &ExportConfig::default(),
+        &out,
+    )
+    .unwrap_err();
+    assert!(matches!(err, ExportError::Data(_)), "{err}");
+    assert!(
+        err.to_string().contains("not-a-folder") && err.to_string().contains("output folder"),
+        "{err}"
+    );
+    let bad_name = ExportConfig {
+        name: "Bad Name".into(),
+        ..Default::default()
+    };
+    let err = export_asset(
+        &Backend::cpu(),
+        &AnalyticSdf::new(AnalyticShape::Sphere),
+        &AnalyticMaterial::Checker,
+        None,
+        &bad_name,
+        dir.path(),
+    )
+    .unwrap_err();
+    assert!(err.to_string().contains("[a-z]"), "{err}");
+}
+
+#[test]
+fn cli_exports_a_test_pattern_and_rejects_bad_flags() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("box");
+    assert_cmd::Command::cargo_bin("pii-bake")
+        .unwrap()
+        .args([
+            "--backend",
+            "cpu",
+            "export",
+            "--analytic",
+            "rounded-box",
+            "--resolution",
+            "48",
+            "--texture",
+            "256",
+            "--out",
+        ])
+        .arg(&out)
+        .assert()
+        .success();
+    assert!(out.join("rounded-box.glb").is_file() && out.join("asset.usda").is_file());
+    assert_cmd::Command::cargo_bin("pii-bake")
+        .unwrap()
+        .args([
+            "export",
+            "--analytic",
+            "sphere",
+            "--texture",
+            "300",
+            "--out",
+        ])
+        .arg(&out)
+        .assert()
+        .code(2);
+}
