@@ -1,1 +1,3 @@
 //! Training stages, losses, schedules, progress, checkpoint/resume.
+
+pub mod hull;
