@@ -1,1 +1,4 @@
 //! Training stages, losses, schedules, progress, checkpoint/resume.
+
+pub mod hull;
+pub mod photo;
