@@ -3,10 +3,10 @@
 //! ratio and the cpu MLP's GFLOP/s against a plain GEMM reference measured in the same run.
 //! Prints a table and writes JSON atomically.
 //!
-//! What is timed: the MLP on already-encoded inputs (`Backend::mlp_forward` /
-//! `mlp_backward`, parameters and inputs resident on the backend). The encodings are not part of
-//! the timing (the frequency PE is negligible next to 8×512; the hash grid of the fast network
-//! is timed by the encoding's own benchmark once `nn::encoding` lands).
+//! What is timed: the whole field per point — `Backend::encoding_forward` (frequency PE or hash
+//! grid) and `Backend::mlp_forward`, plus for forward+backward `mlp_backward` and the encoding's
+//! parameter backward (the hash table scatter) — with parameters and inputs resident on the
+//! backend. GFLOP/s figures count the MLP's FLOPs only (the encodings are memory-bound).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -16,7 +16,8 @@ use rayon::prelude::*;
 
 use crate::backend::{Backend, BackendChoice};
 use crate::cli::Context;
-use crate::nn::field::{FieldEncoding, SdfFieldConfig};
+use crate::nn::encoding::EncodingConfig;
+use crate::nn::field::SdfFieldConfig;
 use crate::nn::mlp::{Init, Mlp, Real};
 
 #[derive(Debug, clap::Args)]
@@ -65,39 +66,30 @@ struct Ratio {
     forward_backward_wgpu_over_cpu: f64,
 }
 
-fn network(name: &str) -> anyhow::Result<(Mlp, &'static str)> {
-    let (cfg, enc_dim, note) = match name {
-        "paper" => {
-            let c = SdfFieldConfig::paper();
-            let FieldEncoding::Frequency { n_freqs } = c.encoding else {
-                unreachable!("paper uses PE")
-            };
-            (
-                c.clone(),
-                3 * (1 + 2 * n_freqs),
-                "PE 6 freqs (39-d input), 8x512, skip at 4, Softplus 100, weight norm",
-            )
-        }
-        "fast" => {
-            let c = SdfFieldConfig::fast();
-            let FieldEncoding::HashGrid {
-                levels,
-                features_per_level,
-                ..
-            } = c.encoding
-            else {
-                unreachable!("fast uses a hash grid")
-            };
-            // Raw xyz + the grid's features.
-            (
-                c.clone(),
-                3 + levels * features_per_level,
-                "hash grid 16x2 (+xyz, 35-d input; grid not timed), 2x64 MLP",
-            )
-        }
+/// A benchmarked network: the field's encoding and its MLP.
+struct Net {
+    encoding: EncodingConfig,
+    mlp: Mlp,
+    note: &'static str,
+}
+
+fn network(name: &str) -> anyhow::Result<Net> {
+    let (cfg, note) = match name {
+        "paper" => (
+            SdfFieldConfig::paper(),
+            "PE 6 freqs (39-d input), 8x512, skip at 4, Softplus 100, weight norm",
+        ),
+        "fast" => (
+            SdfFieldConfig::fast(),
+            "hash grid 16 levels x 2 features, 2^19 entries (+xyz, 35-d input), 2x64 MLP, Softplus 100",
+        ),
         other => anyhow::bail!("unknown network {other:?} (expected paper or fast)"),
     };
-    Ok((Mlp::new(cfg.mlp_config(enc_dim))?, note))
+    Ok(Net {
+        encoding: cfg.encoding.encoding_config(),
+        mlp: Mlp::new(cfg.mlp_config(cfg.encoding.encoded_dim()))?,
+        note,
+    })
 }
 
 fn best_of(iters: usize, mut f: impl FnMut() -> anyhow::Result<()>) -> anyhow::Result<f64> {
@@ -110,43 +102,67 @@ fn best_of(iters: usize, mut f: impl FnMut() -> anyhow::Result<()>) -> anyhow::R
     Ok(best)
 }
 
-/// Seconds for one forward and one forward+backward over `batch` points.
-fn time_mlp(
+/// Seconds for one forward and one forward+backward of the whole field (encoding + MLP) over
+/// `batch` points: encoding forward, MLP forward; then MLP backward and the encoding's parameter
+/// backward (the hash table's gradient scatter). The concatenation of raw xyz with the grid
+/// features is a copy and is not timed.
+fn time_field(
     b: &Backend,
-    mlp: &Mlp,
+    net: &Net,
     batch: usize,
     sub: usize,
     iters: usize,
 ) -> anyhow::Result<(f64, f64)> {
+    let mlp = &net.mlp;
     let params = mlp.init(Init::Default, 1);
+    let enc_params = net.encoding.init_params(1);
+    let enc_dim = net.encoding.out_dim(3);
     let mut rng = crate::util::rng(2);
     let sub = if b.is_gpu() {
         batch
     } else {
         sub.min(batch).max(1)
     };
-    let x: Vec<f32> = (0..sub * mlp.in_dim())
-        .map(|_| rand::Rng::random_range(&mut rng, -1.0f32..1.0))
-        .collect();
+    let mut r = |n: usize| -> Vec<f32> {
+        (0..n)
+            .map(|_| rand::Rng::random_range(&mut rng, -1.0f32..1.0))
+            .collect()
+    };
+    let (pts, x, d_enc) = (r(sub * 3), r(sub * mlp.in_dim()), r(sub * enc_dim));
     let dy = vec![1e-3f32; sub * mlp.out_dim()];
-    let (pt, xt, dyt) = (b.upload(&params), b.upload(&x), b.upload(&dy));
+    let (pt, et, ptst, xt, dyt, det) = (
+        b.upload(&params),
+        b.upload(&enc_params),
+        b.upload(&pts),
+        b.upload(&x),
+        b.upload(&dy),
+        b.upload(&d_enc),
+    );
     let reps = batch.div_ceil(sub);
+    let step = |backward: bool| -> anyhow::Result<()> {
+        b.encoding_forward(&net.encoding, &et, &ptst, sub)?;
+        let f = b.mlp_forward(mlp, &pt, &xt, backward)?;
+        if backward {
+            b.mlp_backward(mlp, &pt, &f, &dyt)?;
+            if net.encoding.num_params() > 0 {
+                b.encoding_backward(&net.encoding, &et, &ptst, sub, &det, false)?;
+            }
+        }
+        Ok(())
+    };
     // Warm-up (kernel compilation, allocator): one sub-batch forward + backward.
-    let f = b.mlp_forward(mlp, &pt, &xt, true)?;
-    b.mlp_backward(mlp, &pt, &f, &dyt)?;
+    step(true)?;
     b.sync()?;
-    drop(f);
     let fwd = best_of(iters, || {
         for _ in 0..reps {
-            b.mlp_forward(mlp, &pt, &xt, false)?;
+            step(false)?;
         }
         b.sync()?;
         Ok(())
     })?;
     let fb = best_of(iters, || {
         for _ in 0..reps {
-            let f = b.mlp_forward(mlp, &pt, &xt, true)?;
-            b.mlp_backward(mlp, &pt, &f, &dyt)?;
+            step(true)?;
         }
         b.sync()?;
         Ok(())
@@ -209,11 +225,13 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
         "net", "backend", "batch", "fwd pts/s", "GFLOP/s", "fwd+bwd pts/s", "GFLOP/s"
     ));
     for name in &args.networks {
-        let (mlp, note) = network(name)?;
+        let net = network(name)?;
+        let mlp = &net.mlp;
         notes.insert(
             name.clone(),
-            serde_json::json!({ "network": note, "params": mlp.num_params(),
-            "forward_flops_per_point": 2 * mlp.macs_per_point() }),
+            serde_json::json!({ "network": net.note, "mlp_params": mlp.num_params(),
+            "encoding_params": net.encoding.num_params(),
+            "mlp_forward_flops_per_point": 2 * mlp.macs_per_point() }),
         );
         let flops = 2.0 * mlp.macs_per_point() as f64;
         for b in &backends {
@@ -223,7 +241,7 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
                     ctx.say(format!("{name:<6} {:<60} {batch:>8} skipped (software adapter; --software-max-batch)", b.describe()));
                     continue;
                 }
-                let (tf, tfb) = time_mlp(b, &mlp, batch, args.cpu_sub_batch, args.iters)
+                let (tf, tfb) = time_field(b, &net, batch, args.cpu_sub_batch, args.iters)
                     .with_context(|| format!("{name} on {} at batch {batch}", b.describe()))?;
                 let row = Row {
                     network: name.clone(),
@@ -293,7 +311,7 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
         ));
     }
     let report = serde_json::json!({
-        "what": "MLP throughput on encoded inputs (encodings not timed); best of --iters after a warm-up",
+        "what": "SDF field throughput (encoding + MLP, forward and forward+backward incl. the encoding's parameter gradient); GFLOP/s count the MLP only; best of --iters after a warm-up",
         "profile": if cfg!(debug_assertions) { "dev" } else { "release" },
         "cpu_threads": rayon::current_num_threads(),
         "cpu_sub_batch": args.cpu_sub_batch,

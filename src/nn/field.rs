@@ -9,11 +9,13 @@
 //!
 //! Parameter layout: `[encoding parameters, MLP parameters]` (see [`crate::nn::mlp`]).
 //!
-//! Encodings: the frequency positional encoding (input included) is implemented here; the hash
-//! grid of the fast configuration plugs in through [`Encoder`] once `nn::encoding` provides it,
-//! until then [`SdfField::new`] reports it as unavailable.
+//! Encodings: the frequency positional encoding (input included, [`FrequencyPe`]) for the paper
+//! preset, and the raw position concatenated with the multiresolution hash grid of
+//! `nn::encoding` ([`HashGridPe`], NeuS2) for the fast preset. Both run on the host through the
+//! cpu twins of `nn::encoding`; the MLP runs on the chosen backend.
 
 use crate::backend::{Backend, BackendError};
+use crate::nn::encoding::{encoding_backward_cpu, encoding_forward_cpu, EncodingConfig};
 use crate::nn::mlp::{Activation, Init, Mlp, MlpConfig};
 
 /// An input encoding the field can use. Only parameter gradients are needed (x-gradients are
@@ -68,6 +70,50 @@ impl Encoder for FrequencyPe {
     }
 }
 
+/// The fast field's encoding (NeuS2): `[x, grid(x)]`, the raw position (so the geometric
+/// initialisation sees it) followed by the hash grid's `levels·F` features. The grid covers
+/// `[-1, 1]^3`, the normalised scene's bounding cube.
+#[derive(Clone, Debug)]
+pub struct HashGridPe {
+    pub grid: EncodingConfig,
+}
+
+impl HashGridPe {
+    fn grid_dim(&self) -> usize {
+        self.grid.out_dim(3)
+    }
+}
+
+impl Encoder for HashGridPe {
+    fn in_dim(&self) -> usize {
+        3
+    }
+    fn out_dim(&self) -> usize {
+        3 + self.grid_dim()
+    }
+    fn num_params(&self) -> usize {
+        self.grid.num_params()
+    }
+    fn init(&self, seed: u64) -> Vec<f32> {
+        self.grid.init_params(seed)
+    }
+    fn forward(&self, params: &[f32], x: &[f32]) -> Vec<f32> {
+        let g = encoding_forward_cpu(&self.grid, params, x, 3);
+        let gd = self.grid_dim();
+        let mut out = Vec::with_capacity(x.len() / 3 * self.out_dim());
+        for (p, f) in x.chunks_exact(3).zip(g.chunks_exact(gd)) {
+            out.extend_from_slice(p);
+            out.extend_from_slice(f);
+        }
+        out
+    }
+    fn backward_params(&self, params: &[f32], x: &[f32], d_enc: &[f32]) -> Vec<f32> {
+        let (od, gd) = (self.out_dim(), self.grid_dim());
+        let d_grid: Vec<f32> = d_enc.chunks_exact(od).flat_map(|r| r[3..3 + gd].iter().copied()).collect();
+        encoding_backward_cpu(&self.grid, params, x, 3, &d_grid, false).0
+    }
+}
+
 /// Which encoding feeds the MLP.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub enum FieldEncoding {
@@ -81,6 +127,34 @@ pub enum FieldEncoding {
         base_resolution: u32,
         growth: f32,
     },
+}
+
+impl FieldEncoding {
+    /// The `nn::encoding` configuration of this encoding (3-D inputs; the hash grid covers
+    /// `[-1, 1]^3`). For the hash grid, the field also feeds the raw position ([`HashGridPe`]).
+    pub fn encoding_config(&self) -> EncodingConfig {
+        match *self {
+            FieldEncoding::Frequency { n_freqs } => EncodingConfig::frequency(n_freqs as u32),
+            FieldEncoding::HashGrid { levels, features_per_level, log2_table_size, base_resolution, growth } => {
+                EncodingConfig::HashGrid {
+                    levels: levels as u32,
+                    features_per_level: features_per_level as u32,
+                    log2_table_size,
+                    base_resolution,
+                    per_level_scale: growth,
+                    bound: 1.0,
+                }
+            }
+        }
+    }
+
+    /// Width of the MLP's input: the encoded 3-D position (raw xyz included).
+    pub fn encoded_dim(&self) -> usize {
+        match self {
+            FieldEncoding::Frequency { .. } => self.encoding_config().out_dim(3),
+            FieldEncoding::HashGrid { .. } => 3 + self.encoding_config().out_dim(3),
+        }
+    }
 }
 
 /// An SDF network's configuration. Presets: [`SdfFieldConfig::paper`], [`SdfFieldConfig::fast`].
@@ -185,12 +259,10 @@ impl SdfField {
                 config.grad_step
             )));
         }
+        config.encoding.encoding_config().validate(3)?;
         let encoder: Box<dyn Encoder> = match config.encoding {
             FieldEncoding::Frequency { n_freqs } => Box::new(FrequencyPe { in_dim: 3, n_freqs }),
-            FieldEncoding::HashGrid { .. } => return Err(BackendError::Config(
-                "the hash-grid encoding is not wired into the SDF field yet (needs nn::encoding)"
-                    .into(),
-            )),
+            FieldEncoding::HashGrid { .. } => Box::new(HashGridPe { grid: config.encoding.encoding_config() }),
         };
         let mlp = Mlp::new(config.mlp_config(encoder.out_dim()))?;
         Ok(Self {
@@ -422,8 +494,6 @@ mod tests {
         assert_eq!(dims[3], (512, 512 - 39));
         assert_eq!(dims[8], (512, 257));
         assert!(f.mlp.layers[4].skip);
-        let err = SdfField::new(SdfFieldConfig::fast()).unwrap_err();
-        assert!(err.to_string().contains("hash-grid"), "{err}");
     }
 
     #[test]
@@ -518,5 +588,74 @@ mod tests {
                 dp[idx]
             );
         }
+    }
+}
+
+#[cfg(test)]
+mod grid_tests {
+    use super::*;
+
+    /// The hash grid is linear in its table, so `<forward(p), d>` has the exact gradient
+    /// `backward_params(d)`: central differences agree up to f32 rounding.
+    #[test]
+    fn hash_grid_encoder_backward_matches_finite_differences() {
+        let enc = HashGridPe {
+            grid: EncodingConfig::HashGrid {
+                levels: 3,
+                features_per_level: 2,
+                log2_table_size: 8,
+                base_resolution: 2,
+                per_level_scale: 2.0,
+                bound: 1.0,
+            },
+        };
+        assert_eq!(enc.out_dim(), 3 + 6);
+        let mut rng = crate::util::rng(7);
+        let x: Vec<f32> = (0..5 * 3).map(|_| rand::Rng::random_range(&mut rng, -1.2f32..1.2)).collect();
+        let d: Vec<f32> =
+            (0..5 * enc.out_dim()).map(|_| rand::Rng::random_range(&mut rng, -1.0f32..1.0)).collect();
+        let p = enc.init(3);
+        let out = enc.forward(&p, &x);
+        // Raw xyz leads each row.
+        for (row, q) in out.chunks_exact(enc.out_dim()).zip(x.chunks_exact(3)) {
+            assert_eq!(&row[..3], q);
+        }
+        let g = enc.backward_params(&p, &x, &d);
+        assert_eq!(g.len(), p.len());
+        let obj = |p: &[f32]| -> f64 {
+            enc.forward(p, &x).iter().zip(&d).map(|(a, b)| (*a as f64) * (*b as f64)).sum()
+        };
+        let h = 1e-2f32;
+        let touched: Vec<usize> = (0..p.len()).filter(|&i| g[i] != 0.0).take(40).collect();
+        assert!(touched.len() >= 10, "the points touch the table");
+        for i in touched.into_iter().chain([0, p.len() / 2, p.len() - 1]) {
+            let (mut a, mut b) = (p.clone(), p.clone());
+            a[i] += h;
+            b[i] -= h;
+            let fd = (obj(&a) - obj(&b)) / (2.0 * h as f64);
+            assert!(
+                (fd - g[i] as f64).abs() < 1e-4 + 1e-3 * fd.abs(),
+                "param {i}: analytic {} vs fd {fd}",
+                g[i]
+            );
+        }
+    }
+
+    #[test]
+    fn fast_preset_builds_and_bad_grids_are_refused() {
+        let f = SdfField::new(SdfFieldConfig::fast()).unwrap();
+        assert_eq!(f.encoder.out_dim(), 3 + 32);
+        assert_eq!(f.config.encoding.encoded_dim(), 35);
+        assert_eq!(f.mlp.layers[0].in_dim, 35);
+        let mut bad = SdfFieldConfig::fast();
+        bad.encoding = FieldEncoding::HashGrid {
+            levels: 0,
+            features_per_level: 2,
+            log2_table_size: 19,
+            base_resolution: 16,
+            growth: 1.4,
+        };
+        let e = SdfField::new(bad).unwrap_err().to_string();
+        assert!(e.contains("levels"), "{e}");
     }
 }
