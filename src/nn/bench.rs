@@ -104,8 +104,9 @@ fn best_of(iters: usize, mut f: impl FnMut() -> anyhow::Result<()>) -> anyhow::R
 
 /// Seconds for one forward and one forward+backward of the whole field (encoding + MLP) over
 /// `batch` points: encoding forward, MLP forward; then MLP backward and the encoding's parameter
-/// backward (the hash table's gradient scatter). The concatenation of raw xyz with the grid
-/// features is a copy and is not timed.
+/// backward (the hash table's gradient scatter). As a trainer would, the encoding runs once over
+/// the whole batch and the cpu MLP in sub-batches of `sub` points (bounding the memory its
+/// backward keeps). The concatenation of raw xyz with the grid features is a copy, not timed.
 fn time_field(
     b: &Backend,
     net: &Net,
@@ -128,7 +129,7 @@ fn time_field(
             .map(|_| rand::Rng::random_range(&mut rng, -1.0f32..1.0))
             .collect()
     };
-    let (pts, x, d_enc) = (r(sub * 3), r(sub * mlp.in_dim()), r(sub * enc_dim));
+    let (pts, x, d_enc) = (r(batch * 3), r(sub * mlp.in_dim()), r(batch * enc_dim));
     let dy = vec![1e-3f32; sub * mlp.out_dim()];
     let (pt, et, ptst, xt, dyt, det) = (
         b.upload(&params),
@@ -139,36 +140,25 @@ fn time_field(
         b.upload(&d_enc),
     );
     let reps = batch.div_ceil(sub);
-    let step = |backward: bool| -> anyhow::Result<()> {
-        b.encoding_forward(&net.encoding, &et, &ptst, sub)?;
-        let f = b.mlp_forward(mlp, &pt, &xt, backward)?;
-        if backward {
-            b.mlp_backward(mlp, &pt, &f, &dyt)?;
-            if net.encoding.num_params() > 0 {
-                b.encoding_backward(&net.encoding, &et, &ptst, sub, &det, false)?;
+    let pass = |backward: bool, reps: usize| -> anyhow::Result<()> {
+        b.encoding_forward(&net.encoding, &et, &ptst, batch)?;
+        for _ in 0..reps {
+            let f = b.mlp_forward(mlp, &pt, &xt, backward)?;
+            if backward {
+                b.mlp_backward(mlp, &pt, &f, &dyt)?;
             }
         }
+        if backward && net.encoding.num_params() > 0 {
+            b.encoding_backward(&net.encoding, &et, &ptst, batch, &det, false)?;
+        }
+        b.sync()?;
         Ok(())
     };
-    // Warm-up (kernel compilation, allocator): one sub-batch forward + backward.
-    step(true)?;
-    b.sync()?;
-    let fwd = best_of(iters, || {
-        for _ in 0..reps {
-            step(false)?;
-        }
-        b.sync()?;
-        Ok(())
-    })?;
-    let fb = best_of(iters, || {
-        for _ in 0..reps {
-            step(true)?;
-        }
-        b.sync()?;
-        Ok(())
-    })?;
-    let scale = batch as f64 / (reps * sub) as f64;
-    Ok((fwd * scale, fb * scale))
+    // Warm-up (kernel compilation, allocator): one MLP sub-batch forward + backward.
+    pass(true, 1)?;
+    let fwd = best_of(iters, || pass(false, reps))?;
+    let fb = best_of(iters, || pass(true, reps))?;
+    Ok((fwd, fb))
 }
 
 /// GFLOP/s of a plain GEMM (`[rows, 512]·[512, 512]`, matrixmultiply's packed AVX/FMA kernels)
