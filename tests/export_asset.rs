@@ -6,33 +6,13 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+mod common;
+use common::{assert_gltf_valid, assert_usd_valid, python, run};
+
 use pii_bake::backend::Backend;
 use pii_bake::export::{export_asset, ExportConfig, ExportError, TextureSize};
 use pii_bake::mesh::field::{AnalyticMaterial, AnalyticSdf, AnalyticShape};
 use pii_bake::mesh::MeshConfig;
-
-fn python() -> String {
-    std::env::var("PII_PYTHON")
-        .unwrap_or_else(|_| panic!("PII_PYTHON is not set: run the tests with `bash scripts/test.sh` (it sets up bpy/usd-core)"))
-}
-
-fn validator() -> PathBuf {
-    std::env::var("PII_GLTF_VALIDATOR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|_| Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/gltf_validate.mjs"))
-}
-
-fn run(cmd: &mut Command) -> (bool, String) {
-    let out = cmd
-        .output()
-        .unwrap_or_else(|e| panic!("cannot run {cmd:?}: {e}"));
-    let text = format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    (out.status.success(), text)
-}
 
 fn export(
     shape: AnalyticShape,
@@ -98,24 +78,8 @@ fn exported_assets_pass_gltf_and_usd_validators() {
             image::open(out.join(format!(".thumbs/256x256/{}.glb.png", shape.name()))).unwrap();
         assert_eq!((thumb.width(), thumb.height()), (256, 256));
     }
-    let (ok, text) = run(Command::new("node").arg(validator()).args(&glbs));
-    assert!(ok, "glTF-Validator: {text}");
-    for line in text.lines().filter(|l| l.starts_with('{')) {
-        let v: serde_json::Value = serde_json::from_str(line).unwrap();
-        assert_eq!(
-            (v["errors"].as_u64(), v["warnings"].as_u64()),
-            (Some(0), Some(0)),
-            "{line}"
-        );
-    }
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/usd_check.py");
-    let (ok, text) = run(Command::new(python()).arg(&script).args(&usds));
-    assert!(ok, "USD validation: {text}");
-    assert_eq!(
-        text.lines().filter(|l| l.contains("\"errors\": 0")).count(),
-        usds.len(),
-        "{text}"
-    );
+    assert_gltf_valid(&glbs);
+    assert_usd_valid(&usds);
 }
 
 /// Power-of-two textures; ORM has R = 1, B = 0; no iCCP/gAMA chunks.

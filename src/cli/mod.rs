@@ -49,6 +49,9 @@ pub enum Command {
     Eval(crate::eval::cli::EvalArgs),
     /// Fit K spherical Gaussians to an HDR latlong environment map.
     FitEnv(crate::sg::cli::FitEnvArgs),
+    /// Photos → asset (.glb/.usda/.exr). Today a preview bake: visual-hull geometry and photo
+    /// colour; the inverse-rendering training stages are not implemented yet.
+    Bake(crate::train::preview::BakeArgs),
     /// Export an asset (mesh, UVs, baked textures, glTF/USD/EXR) from a field.
     Export(crate::export::cli::ExportArgs),
     /// Benchmarks: write figures (JSON/CSV) and charts.
@@ -175,6 +178,7 @@ pub fn run(cmd: &Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Info(a) => crate::scene::cli::run(a, ctx),
         Command::Eval(a) => crate::eval::cli::run(a, ctx),
         Command::FitEnv(a) => crate::sg::cli::run(a, ctx),
+        Command::Bake(a) => crate::train::preview::run(a, ctx),
         Command::Export(a) => crate::export::cli::run(a, ctx),
         Command::Bench(BenchCommand::Nn(a)) => crate::nn::bench::run(a, ctx),
         Command::Bench(BenchCommand::Env(a)) => crate::sg::bench::run(a, ctx),

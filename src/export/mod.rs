@@ -144,6 +144,9 @@ pub struct ExportReport {
     pub seconds_write: f64,
     pub seconds_total: f64,
     pub config: ExportConfig,
+    /// The written geometry (metres, glTF frame), for callers that evaluate it; not in the JSON.
+    #[serde(skip)]
+    pub geometry: AssetGeometry,
 }
 
 /// A neutral test environment: a warm key light from the upper front right, a cool fill and a
@@ -390,10 +393,12 @@ pub fn export_asset(
         seconds_write,
         seconds_total: t_total.elapsed().as_secs_f64(),
         config: cfg.clone(),
+        geometry: AssetGeometry::default(),
     };
     report.files.push("export_report.json".into());
     let text = serde_json::to_string_pretty(&report)
         .map_err(|e| DataError::new(out_dir, e.to_string()))?;
     atomic_write(&out_dir.join("export_report.json"), text.as_bytes())?;
+    report.geometry = geo;
     Ok(report)
 }

@@ -2,3 +2,4 @@
 
 pub mod hull;
 pub mod photo;
+pub mod preview;

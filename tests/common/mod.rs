@@ -1,0 +1,47 @@
+//! Helpers shared by the integration tests that drive external checkers (the Khronos
+//! glTF-Validator through node, usd-core through `PII_PYTHON`). `scripts/test.sh` sets both up.
+#![allow(dead_code)] // each test binary uses a subset
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+/// The venv Python with bpy and usd-core (`PII_PYTHON`, set by `scripts/test.sh`).
+pub fn python() -> String {
+    std::env::var("PII_PYTHON").unwrap_or_else(|_| {
+        panic!("PII_PYTHON is not set: run the tests with `bash scripts/test.sh` (it sets up bpy/usd-core)")
+    })
+}
+
+/// The glTF-Validator wrapper script.
+pub fn validator() -> PathBuf {
+    std::env::var("PII_GLTF_VALIDATOR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|_| Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/gltf_validate.mjs"))
+}
+
+/// Run a command; (success, stdout + stderr).
+pub fn run(cmd: &mut Command) -> (bool, String) {
+    let out = cmd.output().unwrap_or_else(|e| panic!("cannot run {cmd:?}: {e}"));
+    let text = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    (out.status.success(), text)
+}
+
+/// The glTF-Validator reports 0 errors and 0 warnings on every file.
+pub fn assert_gltf_valid(glbs: &[PathBuf]) {
+    let (ok, text) = run(Command::new("node").arg(validator()).args(glbs));
+    assert!(ok, "glTF-Validator: {text}");
+    let reports: Vec<&str> = text.lines().filter(|l| l.starts_with('{')).collect();
+    assert_eq!(reports.len(), glbs.len(), "one report per file: {text}");
+    for line in reports {
+        let v: serde_json::Value = serde_json::from_str(line).unwrap();
+        assert_eq!((v["errors"].as_u64(), v["warnings"].as_u64()), (Some(0), Some(0)), "{line}");
+    }
+}
+
+/// usd-core's validators (scripts/usd_check.py) report no error on every layer/package.
+pub fn assert_usd_valid(usds: &[PathBuf]) {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/usd_check.py");
+    let (ok, text) = run(Command::new(python()).arg(&script).args(usds));
+    assert!(ok, "USD validation: {text}");
+    assert_eq!(text.lines().filter(|l| l.contains("\"errors\": 0")).count(), usds.len(), "{text}");
+}
