@@ -3,3 +3,5 @@
 pub mod bench;
 pub mod cli;
 pub mod env;
+pub mod shade;
+pub mod shade_gpu;

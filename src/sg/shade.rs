@@ -1,0 +1,472 @@
+//! SG algebra and the simplified Disney BRDF as spherical Gaussians (PhySG's closed form, which
+//! the paper's stage 2 uses), forward and backward, on the cpu backend (the reference).
+//!
+//! SG: `G(ω; ξ, λ, μ) = μ·exp(λ(ω·ξ − 1))`. For a surface point with albedo `a`, perceptual
+//! roughness `R` (α = R²), normal `n`, view direction `v` (surface → camera) and K environment
+//! lobes, the outgoing radiance is
+//!
+//! `L = max(Σ_k spec_k, 0) + max(Σ_k diff_k, 0)` (per RGB channel), where
+//! - `diff_k = ∫_{H(n)} G_k(ω)·a/π·cos⁺ dω` with the cosine as an SG minus a constant
+//!   (`ω·n ≈ 32.7080·exp(0.0315(ω·n − 1)) − 31.7003`) and the hemisphere integral of an SG in
+//!   closed form (Meder & Brüderlin's fit, as in PhySG's `hemisphere_int`);
+//! - `spec_k` uses the GGX distribution as an SG in the half-vector domain,
+//!   `D ≈ G(h; n, 2/R⁴, 1/(πR⁴))`, warped to the light domain around the reflection direction
+//!   (axis `2(v·n)n − v`, sharpness `λ/(4 v·n)`), times the Fresnel (Schlick with the spherical
+//!   Gaussian exponent, `F0 = 0.02`) and Schlick-GGX masking (`k = (R+1)²/8`) terms evaluated at
+//!   the warped axis and divided by `4(ω·n)(v·n)`, multiplied with the light lobe and the cosine
+//!   SG and integrated over the hemisphere in closed form.
+//!
+//! Numerical care (all mirrored by the backward, which differentiates the same code):
+//! - normals, view directions and lobe axes are normalised inside, so their gradients are
+//!   tangent and inputs need not be unit;
+//! - roughness is clamped to `[R_MIN, 1]` (`2/R⁴` stays finite in f32), λ to `[LAMBDA_MIN, ∞)`;
+//! - the SG product's exponent `λ' − λ1 − λ2` is computed as
+//!   `2λ1λ2(ξ1·ξ2 − 1)/(λ' + λ1 + λ2)`, which does not cancel for sharp lobes;
+//! - grazing views (`v·n → 0`) clamp as PhySG does (`max(·, 0)` plus a tiny epsilon).
+//!
+//! The backward is forward-mode automatic differentiation of the same generic code with dual
+//! numbers ([`Dual`]): exact derivatives of the forward as written, checked against central
+//! differences in the tests.
+
+use std::f64::consts::PI;
+use std::ops::{Add, Div, Mul, Neg, Sub};
+
+use rayon::prelude::*;
+
+use crate::backend::{Backend, BackendError, Tensor};
+
+/// Smallest roughness used (α = R² = 4e-4; D's SG sharpness 2/R⁴ = 1.25e7).
+pub const R_MIN: f64 = 0.02;
+/// Smallest lobe sharpness used.
+pub const LAMBDA_MIN: f64 = 1e-4;
+/// Fresnel reflectance at normal incidence (dielectric, as in the paper's code).
+pub const F0: f64 = 0.02;
+const TINY: f64 = 1e-6;
+/// The clamped cosine as an SG minus a constant: `μ_c·exp(λ_c(ω·n − 1)) − α_c`.
+pub const COS_MU: f64 = 32.7080;
+pub const COS_LAMBDA: f64 = 0.0315;
+pub const COS_ALPHA: f64 = 31.7003;
+
+/// The scalar operations the shading code needs: f32, f64 and dual numbers.
+pub trait Scalar:
+    Copy
+    + Add<Output = Self>
+    + Sub<Output = Self>
+    + Mul<Output = Self>
+    + Div<Output = Self>
+    + Neg<Output = Self>
+{
+    fn c(v: f64) -> Self;
+    fn val(self) -> f64;
+    fn exp(self) -> Self;
+    fn sqrt(self) -> Self;
+    /// 2^self.
+    fn exp2(self) -> Self {
+        (self * Self::c(std::f64::consts::LN_2)).exp()
+    }
+    /// max(self, lo) with the derivative of the branch taken (0 below).
+    fn max_c(self, lo: f64) -> Self {
+        if self.val() >= lo {
+            self
+        } else {
+            Self::c(lo)
+        }
+    }
+    fn min_c(self, hi: f64) -> Self {
+        if self.val() <= hi {
+            self
+        } else {
+            Self::c(hi)
+        }
+    }
+}
+
+impl Scalar for f64 {
+    fn c(v: f64) -> Self {
+        v
+    }
+    fn val(self) -> f64 {
+        self
+    }
+    fn exp(self) -> Self {
+        f64::exp(self)
+    }
+    fn sqrt(self) -> Self {
+        f64::sqrt(self)
+    }
+}
+
+impl Scalar for f32 {
+    fn c(v: f64) -> Self {
+        v as f32
+    }
+    fn val(self) -> f64 {
+        self as f64
+    }
+    fn exp(self) -> Self {
+        f32::exp(self)
+    }
+    fn sqrt(self) -> Self {
+        f32::sqrt(self)
+    }
+}
+
+/// A forward-mode dual number with `N` tangents.
+#[derive(Clone, Copy, Debug)]
+pub struct Dual<const N: usize> {
+    pub v: f64,
+    pub d: [f64; N],
+}
+
+impl<const N: usize> Dual<N> {
+    /// The `i`-th input variable with value `v`.
+    pub fn var(v: f64, i: usize) -> Self {
+        let mut d = [0.0; N];
+        d[i] = 1.0;
+        Self { v, d }
+    }
+    fn map(self, v: f64, dv: f64) -> Self {
+        Self { v, d: self.d.map(|x| x * dv) }
+    }
+}
+
+impl<const N: usize> Add for Dual<N> {
+    type Output = Self;
+    fn add(self, o: Self) -> Self {
+        let mut d = self.d;
+        for (a, b) in d.iter_mut().zip(o.d) {
+            *a += b;
+        }
+        Self { v: self.v + o.v, d }
+    }
+}
+impl<const N: usize> Sub for Dual<N> {
+    type Output = Self;
+    fn sub(self, o: Self) -> Self {
+        let mut d = self.d;
+        for (a, b) in d.iter_mut().zip(o.d) {
+            *a -= b;
+        }
+        Self { v: self.v - o.v, d }
+    }
+}
+impl<const N: usize> Mul for Dual<N> {
+    type Output = Self;
+    fn mul(self, o: Self) -> Self {
+        let mut d = [0.0; N];
+        for i in 0..N {
+            d[i] = self.d[i] * o.v + self.v * o.d[i];
+        }
+        Self { v: self.v * o.v, d }
+    }
+}
+impl<const N: usize> Div for Dual<N> {
+    type Output = Self;
+    fn div(self, o: Self) -> Self {
+        let inv = 1.0 / o.v;
+        let q = self.v * inv;
+        let mut d = [0.0; N];
+        for i in 0..N {
+            d[i] = (self.d[i] - q * o.d[i]) * inv;
+        }
+        Self { v: q, d }
+    }
+}
+impl<const N: usize> Neg for Dual<N> {
+    type Output = Self;
+    fn neg(self) -> Self {
+        Self { v: -self.v, d: self.d.map(|x| -x) }
+    }
+}
+impl<const N: usize> Scalar for Dual<N> {
+    fn c(v: f64) -> Self {
+        Self { v, d: [0.0; N] }
+    }
+    fn val(self) -> f64 {
+        self.v
+    }
+    fn exp(self) -> Self {
+        let e = self.v.exp();
+        self.map(e, e)
+    }
+    fn sqrt(self) -> Self {
+        let s = self.v.sqrt();
+        self.map(s, if s > 0.0 { 0.5 / s } else { 0.0 })
+    }
+}
+
+type V3<S> = [S; 3];
+
+fn dot<S: Scalar>(a: V3<S>, b: V3<S>) -> S {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+fn scale<S: Scalar>(a: V3<S>, s: S) -> V3<S> {
+    [a[0] * s, a[1] * s, a[2] * s]
+}
+fn add<S: Scalar>(a: V3<S>, b: V3<S>) -> V3<S> {
+    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+}
+fn normalize<S: Scalar>(a: V3<S>) -> V3<S> {
+    let l = dot(a, a).sqrt().max_c(1e-12);
+    scale(a, S::c(1.0) / l)
+}
+
+/// An SG with an RGB amplitude (axis assumed unit).
+#[derive(Clone, Copy, Debug)]
+pub struct Sg<S> {
+    pub axis: V3<S>,
+    pub lambda: S,
+    pub mu: V3<S>,
+}
+
+/// SG value at direction `w`.
+pub fn sg_eval<S: Scalar>(g: &Sg<S>, w: V3<S>) -> V3<S> {
+    let e = (g.lambda * (dot(g.axis, w) - S::c(1.0))).exp();
+    scale(g.mu, e)
+}
+
+/// The product of two SGs is an SG. The exponent `λ' − λ1 − λ2` is evaluated without
+/// cancellation as `2λ1λ2(ξ1·ξ2 − 1)/(λ' + λ1 + λ2)`.
+pub fn sg_product<S: Scalar>(a: &Sg<S>, b: &Sg<S>) -> Sg<S> {
+    let u = add(scale(a.axis, a.lambda), scale(b.axis, b.lambda));
+    let lam = dot(u, u).sqrt().max_c(1e-12);
+    let axis = scale(u, S::c(1.0) / lam);
+    let expo = S::c(2.0) * a.lambda * b.lambda * (dot(a.axis, b.axis) - S::c(1.0)) / (lam + a.lambda + b.lambda);
+    let e = expo.exp();
+    Sg { axis, lambda: lam, mu: [a.mu[0] * b.mu[0] * e, a.mu[1] * b.mu[1] * e, a.mu[2] * b.mu[2] * e] }
+}
+
+/// `1 − e^{−x}` for x ≥ 0, accurate for small x.
+fn one_minus_exp_neg<S: Scalar>(x: S) -> S {
+    if x.val() < 1e-4 {
+        // x − x²/2 + x³/6
+        x * (S::c(1.0) - x * (S::c(0.5) - x * S::c(1.0 / 6.0)))
+    } else {
+        S::c(1.0) - (-x).exp()
+    }
+}
+
+/// Integral of `G(ω; ξ, λ, 1)` over the whole sphere: `2π/λ·(1 − e^{−2λ})` (→ 4π as λ → 0).
+pub fn sg_integral<S: Scalar>(lambda: S) -> S {
+    let l = lambda.max_c(1e-12);
+    S::c(2.0 * PI) * one_minus_exp_neg(S::c(2.0) * l) / l
+}
+
+/// Inner product (integral over the sphere of the product) of two SGs, per channel.
+pub fn sg_inner<S: Scalar>(a: &Sg<S>, b: &Sg<S>) -> V3<S> {
+    let p = sg_product(a, b);
+    scale(p.mu, sg_integral(p.lambda))
+}
+
+/// Integral of `G(ω; ξ, λ, 1)` over the hemisphere around `n`, with `cos_beta = ξ·n`
+/// (PhySG's `hemisphere_int`, the Meder & Brüderlin fit; exact at cos β = ±1 and λ → ∞).
+pub fn hemisphere_int<S: Scalar>(lambda: S, cos_beta: S) -> S {
+    let l = lambda + S::c(TINY);
+    let inv = S::c(1.0) / l;
+    let t = l.sqrt() * (S::c(1.6988) + S::c(10.8438) * inv) / (S::c(1.0) + S::c(6.2201) * inv + S::c(10.2415) * inv * inv);
+    let inv_a = (-t).exp();
+    let s = if cos_beta.val() >= 0.0 {
+        let inv_b = (-t * cos_beta).exp();
+        (S::c(1.0) - inv_a * inv_b) / (S::c(1.0) - inv_a + inv_b - inv_a * inv_b)
+    } else {
+        let b = (t * cos_beta).exp();
+        (b - inv_a) / ((S::c(1.0) - inv_a) * (b + S::c(1.0)))
+    };
+    // A_b = 2π/λ (e^{−λ} − e^{−2λ}) = 2π/λ e^{−λ}(1 − e^{−λ}); A_u = 2π/λ (1 − e^{−λ}).
+    let om = one_minus_exp_neg(l);
+    let a_u = S::c(2.0 * PI) * om * inv;
+    let a_b = a_u * (-l).exp();
+    a_b * (S::c(1.0) - s) + a_u * s
+}
+
+/// `∫_{H(n)} G(ω)·cos⁺ dω` with the cosine as SG minus constant (per channel); `n` unit.
+fn cosine_hemisphere<S: Scalar>(g: &Sg<S>, n: V3<S>) -> V3<S> {
+    let cos_sg = Sg { axis: n, lambda: S::c(COS_LAMBDA), mu: [S::c(COS_MU); 3] };
+    let p = sg_product(&cos_sg, g);
+    let h1 = hemisphere_int(p.lambda, dot(p.axis, n));
+    let h2 = hemisphere_int(g.lambda, dot(g.axis, n));
+    [0, 1, 2].map(|c| p.mu[c] * h1 - g.mu[c] * S::c(COS_ALPHA) * h2)
+}
+
+/// Per-point shading inputs.
+#[derive(Clone, Copy, Debug)]
+pub struct Surface<S> {
+    pub albedo: V3<S>,
+    pub roughness: S,
+    pub normal: V3<S>,
+    /// Surface → camera.
+    pub view: V3<S>,
+}
+
+/// One lobe's (specular, diffuse) contribution before the final clamps.
+pub fn lobe_contribution<S: Scalar>(s: &Surface<S>, light: &Sg<S>) -> (V3<S>, V3<S>) {
+    let n = normalize(s.normal);
+    let v = normalize(s.view);
+    let light = Sg { axis: normalize(light.axis), lambda: light.lambda.max_c(LAMBDA_MIN), mu: light.mu };
+    let r = s.roughness.max_c(R_MIN).min_c(1.0);
+    let r2 = r * r;
+    let inv_r4 = S::c(1.0) / (r2 * r2);
+
+    // Specular: D as an SG around n, warped to the light domain.
+    let vn = dot(v, n).max_c(0.0);
+    let w = add(scale(n, S::c(2.0) * vn), scale(v, S::c(-1.0)));
+    let w = normalize(w);
+    let lam_w = S::c(2.0) * inv_r4 / (S::c(4.0) * vn + S::c(TINY));
+    let mu_d = inv_r4 * S::c(1.0 / PI);
+    let h = normalize(add(w, v));
+    let vh = dot(v, h).max_c(0.0);
+    let fresnel = S::c(F0) + S::c(1.0 - F0) * (-(S::c(5.55473) * vh + S::c(6.8316)) * vh).exp2();
+    let d1 = dot(w, n).max_c(0.0);
+    let d2 = vn;
+    let k = (r + S::c(1.0)) * (r + S::c(1.0)) * S::c(0.125);
+    let g1 = d1 / (d1 * (S::c(1.0) - k) + k + S::c(TINY));
+    let g2 = d2 / (d2 * (S::c(1.0) - k) + k + S::c(TINY));
+    let moi = fresnel * g1 * g2 / (S::c(4.0) * d1 * d2 + S::c(TINY));
+    let brdf = Sg { axis: w, lambda: lam_w, mu: [mu_d * moi; 3] };
+    let spec = cosine_hemisphere(&sg_product(&light, &brdf), n);
+
+    // Diffuse: albedo/π times the light, cosine-weighted over the hemisphere.
+    let kd = scale(s.albedo, S::c(1.0 / PI));
+    let lit = Sg { axis: light.axis, lambda: light.lambda, mu: [light.mu[0] * kd[0], light.mu[1] * kd[1], light.mu[2] * kd[2]] };
+    let diff = cosine_hemisphere(&lit, n);
+    (spec, diff)
+}
+
+/// Outgoing radiance at one point under `lobes` (f64 or f32).
+pub fn shade_point<S: Scalar>(s: &Surface<S>, lobes: &[Sg<S>]) -> V3<S> {
+    let mut spec = [S::c(0.0); 3];
+    let mut diff = [S::c(0.0); 3];
+    for l in lobes {
+        let (sp, df) = lobe_contribution(s, l);
+        spec = add(spec, sp);
+        diff = add(diff, df);
+    }
+    [0, 1, 2].map(|c| spec[c].max_c(0.0) + diff[c].max_c(0.0))
+}
+
+// ---- batched layout ------------------------------------------------------------------------
+
+/// Floats per point: albedo 3, roughness 1, normal 3, view 3.
+pub const POINT_STRIDE: usize = 10;
+/// Floats per lobe: axis 3, sharpness 1, amplitude 3.
+pub const LOBE_STRIDE: usize = 7;
+
+fn surface_of<S: Scalar>(p: &[S]) -> Surface<S> {
+    Surface { albedo: [p[0], p[1], p[2]], roughness: p[3], normal: [p[4], p[5], p[6]], view: [p[7], p[8], p[9]] }
+}
+fn lobe_of<S: Scalar>(l: &[S]) -> Sg<S> {
+    Sg { axis: [l[0], l[1], l[2]], lambda: l[3], mu: [l[4], l[5], l[6]] }
+}
+
+/// Forward on the cpu: `points` `[n, 10]`, `lobes` `[K, 7]` → RGB `[n, 3]` (f64 reference).
+pub fn shade_forward_cpu(points: &[f64], lobes: &[f64]) -> Vec<f64> {
+    let lobes: Vec<Sg<f64>> = lobes.chunks_exact(LOBE_STRIDE).map(lobe_of).collect();
+    points
+        .par_chunks(POINT_STRIDE)
+        .flat_map_iter(|p| shade_point(&surface_of(p), &lobes))
+        .collect()
+}
+
+/// Gradients of `Σ d_out·L` with respect to every input.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ShadeGrads {
+    /// `[n, 10]` in the point layout.
+    pub d_points: Vec<f64>,
+    /// `[K, 7]` in the lobe layout, summed over points.
+    pub d_lobes: Vec<f64>,
+}
+
+const ND: usize = POINT_STRIDE + LOBE_STRIDE;
+
+/// Backward on the cpu (forward-mode AD of the forward, exact): `d_out` `[n, 3]`.
+pub fn shade_backward_cpu(points: &[f64], lobes: &[f64], d_out: &[f64]) -> ShadeGrads {
+    let k = lobes.len() / LOBE_STRIDE;
+    let per_point: Vec<(Vec<f64>, Vec<f64>)> = points
+        .par_chunks(POINT_STRIDE)
+        .zip(d_out.par_chunks(3))
+        .map(|(p, dy)| {
+            let surf: Surface<Dual<ND>> = surface_of(&(0..POINT_STRIDE).map(|i| Dual::var(p[i], i)).collect::<Vec<_>>());
+            let mut contribs = Vec::with_capacity(k);
+            let (mut spec, mut diff) = ([0.0f64; 3], [0.0f64; 3]);
+            for l in lobes.chunks_exact(LOBE_STRIDE) {
+                let lv: Vec<Dual<ND>> = (0..LOBE_STRIDE).map(|i| Dual::var(l[i], POINT_STRIDE + i)).collect();
+                let (sp, df) = lobe_contribution(&surf, &lobe_of(&lv));
+                for c in 0..3 {
+                    spec[c] += sp[c].v;
+                    diff[c] += df[c].v;
+                }
+                contribs.push((sp, df));
+            }
+            // The final clamps: a channel whose sum is clamped passes no gradient.
+            let ws: [f64; 3] = [0, 1, 2].map(|c| if spec[c] >= 0.0 { dy[c] } else { 0.0 });
+            let wd: [f64; 3] = [0, 1, 2].map(|c| if diff[c] >= 0.0 { dy[c] } else { 0.0 });
+            let mut dp = vec![0.0; POINT_STRIDE];
+            let mut dl = vec![0.0; k * LOBE_STRIDE];
+            for (j, (sp, df)) in contribs.iter().enumerate() {
+                for c in 0..3 {
+                    for i in 0..POINT_STRIDE {
+                        dp[i] += ws[c] * sp[c].d[i] + wd[c] * df[c].d[i];
+                    }
+                    for i in 0..LOBE_STRIDE {
+                        dl[j * LOBE_STRIDE + i] += ws[c] * sp[c].d[POINT_STRIDE + i] + wd[c] * df[c].d[POINT_STRIDE + i];
+                    }
+                }
+            }
+            (dp, dl)
+        })
+        .collect();
+    let mut d_lobes = vec![0.0; k * LOBE_STRIDE];
+    let mut d_points = Vec::with_capacity(points.len());
+    for (dp, dl) in per_point {
+        d_points.extend(dp);
+        for (a, b) in d_lobes.iter_mut().zip(dl) {
+            *a += b;
+        }
+    }
+    ShadeGrads { d_points, d_lobes }
+}
+
+fn check_shapes(points: usize, lobes: usize, d_out: Option<usize>) -> Result<usize, BackendError> {
+    if points % POINT_STRIDE != 0 || lobes % LOBE_STRIDE != 0 {
+        return Err(BackendError::Shape(format!(
+            "sg shading: points ({points} floats) must be a multiple of {POINT_STRIDE}, lobes ({lobes}) of {LOBE_STRIDE}"
+        )));
+    }
+    let n = points / POINT_STRIDE;
+    if let Some(d) = d_out {
+        if d != n * 3 {
+            return Err(BackendError::Shape(format!("sg shading: d_out has {d} floats, expected {}", n * 3)));
+        }
+    }
+    Ok(n)
+}
+
+impl Backend {
+    /// Outgoing radiance `[n, 3]` at `points` `[n, 10]` (albedo, roughness, normal, view) under
+    /// the SG environment `lobes` `[K, 7]` (axis, sharpness, amplitude). See the module docs.
+    pub fn sg_shade_forward(&self, points: &Tensor, lobes: &Tensor) -> Result<Tensor, BackendError> {
+        check_shapes(points.len(), lobes.len(), None)?;
+        match self {
+            Backend::Cpu(_) => {
+                let p: Vec<f64> = points.host()?.iter().map(|&v| v as f64).collect();
+                let l: Vec<f64> = lobes.host()?.iter().map(|&v| v as f64).collect();
+                Ok(Tensor::Host(shade_forward_cpu(&p, &l).into_iter().map(|v| v as f32).collect()))
+            }
+            Backend::Gpu(g) => super::shade_gpu::forward(g, points, lobes),
+        }
+    }
+
+    /// Backward of [`Backend::sg_shade_forward`]: (`d_points` `[n, 10]`, `d_lobes` `[K, 7]`).
+    pub fn sg_shade_backward(&self, points: &Tensor, lobes: &Tensor, d_out: &Tensor) -> Result<(Tensor, Tensor), BackendError> {
+        check_shapes(points.len(), lobes.len(), Some(d_out.len()))?;
+        match self {
+            Backend::Cpu(_) => {
+                let f = |t: &Tensor| -> Result<Vec<f64>, BackendError> { Ok(t.host()?.iter().map(|&v| v as f64).collect()) };
+                let g = shade_backward_cpu(&f(points)?, &f(lobes)?, &f(d_out)?);
+                let h = |v: Vec<f64>| Tensor::Host(v.into_iter().map(|x| x as f32).collect());
+                Ok((h(g.d_points), h(g.d_lobes)))
+            }
+            Backend::Gpu(g) => super::shade_gpu::backward(g, points, lobes, d_out),
+        }
+    }
+}
