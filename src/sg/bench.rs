@@ -1,7 +1,7 @@
 //! The `bench env` command: for every latlong .exr under a folder, fit each K of a lobe ladder
 //! and record the relative L2 error of the full-res re-render, the fit time and the K that
 //! `fit-env --lobes auto` would choose. Writes CSV + JSON atomically and an SVG chart of fit
-//! error (log y) against fit time, one series per map, one point per K; prints the table.
+//! error (relative log-space L2, log y) against fit time, one series per map, one point per K; prints the table.
 
 use std::path::{Path, PathBuf};
 
@@ -32,7 +32,7 @@ pub struct BenchEnvArgs {
     /// Width of the area-averaged map the loss sees.
     #[arg(long, default_value_t = FitConfig::default().fit_width)]
     pub fit_width: usize,
-    /// Tolerance `auto` uses (relative L2 of the full-res re-render).
+    /// Tolerance `auto` uses (relative log-space L2 of the full-res re-render, see fit-env).
     #[arg(long, default_value_t = DEFAULT_TOLERANCE)]
     pub tolerance: f64,
     /// Latlong layout of the maps (the shipped maps are Blender's).
@@ -135,7 +135,7 @@ pub fn run(args: &BenchEnvArgs, ctx: &Context) -> anyhow::Result<()> {
         "fit_width": args.fit_width,
         "tolerance": args.tolerance,
         "convention": args.convention,
-        "error": "solid-angle-weighted relative L2 of the full-resolution re-render",
+        "error": "relative_l2: solid-angle-weighted relative L2 of the full-resolution re-render; relative_log_l2: the same on log1p(radiance), which auto_lobes uses",
         "rows": rows,
     });
     atomic_write(&json, serde_json::to_string_pretty(&doc)?.as_bytes())?;
@@ -167,14 +167,15 @@ fn table(rows: &[BenchRow]) -> String {
     s
 }
 
-/// Fit error (log y) against fit time, one series per map. SVG text elements need no fonts.
+/// Fit error (relative log-space L2, the metric `auto` uses; log y) against fit time, one series
+/// per map. Plotters' SVG backend writes `<text>` elements: no system fonts are needed.
 pub fn chart_svg(rows: &[BenchRow]) -> anyhow::Result<String> {
     use plotters::prelude::*;
     let mut maps: Vec<&str> = rows.iter().map(|r| r.map.as_str()).collect();
     maps.dedup();
     let tmax = rows.iter().map(|r| r.fit_seconds).fold(0.0, f64::max).max(1e-3) * 1.05;
-    let emin = rows.iter().map(|r| r.relative_l2).fold(f64::INFINITY, f64::min).max(1e-6) * 0.8;
-    let emax = rows.iter().map(|r| r.relative_l2).fold(0.0, f64::max).max(emin * 2.0) * 1.25;
+    let emin = rows.iter().map(|r| r.relative_log_l2).fold(f64::INFINITY, f64::min).max(1e-6) * 0.8;
+    let emax = rows.iter().map(|r| r.relative_log_l2).fold(0.0, f64::max).max(emin * 2.0) * 1.25;
     let mut svg = String::new();
     {
         let root = SVGBackend::with_string(&mut svg, (900, 600)).into_drawing_area();
@@ -189,12 +190,12 @@ pub fn chart_svg(rows: &[BenchRow]) -> anyhow::Result<String> {
         chart
             .configure_mesh()
             .x_desc("fit time (s)")
-            .y_desc("relative L2 error")
+            .y_desc("relative log-space L2 error")
             .draw()
             .map_err(|err| anyhow::anyhow!("chart: {err}"))?;
         for (i, m) in maps.iter().enumerate() {
             let color = Palette99::pick(i).to_rgba();
-            let pts: Vec<(f64, f64)> = rows.iter().filter(|r| r.map == *m).map(|r| (r.fit_seconds, r.relative_l2)).collect();
+            let pts: Vec<(f64, f64)> = rows.iter().filter(|r| r.map == *m).map(|r| (r.fit_seconds, r.relative_log_l2)).collect();
             chart
                 .draw_series(LineSeries::new(pts.clone(), color.stroke_width(1)))
                 .map_err(|err| anyhow::anyhow!("chart: {err}"))?

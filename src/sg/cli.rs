@@ -14,10 +14,10 @@ use crate::util::atomic_write;
 pub struct FitEnvArgs {
     /// Latlong HDR environment map (.exr, 2:1).
     pub map: PathBuf,
-    /// Lobe count, or `auto`: the smallest of 8, 16, 32, 64, 128 whose relative L2 error is within --tolerance.
+    /// Lobe count, or `auto`: the smallest of 8, 16, 32, 64, 128 whose relative log-space error is within --tolerance.
     #[arg(long, default_value = "auto")]
     pub lobes: String,
-    /// `--lobes auto` tolerance on the solid-angle-weighted relative L2 error of the full-res re-render.
+    /// `--lobes auto` tolerance on the solid-angle-weighted relative L2 error of log1p(radiance) of the full-res re-render (relative_log_l2).
     #[arg(long, default_value_t = DEFAULT_TOLERANCE)]
     pub tolerance: f64,
     /// Adam iterations per fit.
@@ -153,6 +153,7 @@ fn write_outputs(
         "lobes_arg": args.lobes,
         "lobes": chosen.lobes,
         "tolerance": args.tolerance,
+        "tolerance_on": "relative_log_l2",
         "tolerance_met": chosen.within_tolerance,
         "auto_note": if parse_lobes(&args.lobes).ok().flatten().is_none() && !auto_ok {
             "no rung met the tolerance: the largest K was kept"
@@ -172,9 +173,10 @@ fn write_outputs(
     atomic_write(&report, serde_json::to_string_pretty(&doc)?.as_bytes())?;
     ctx.emit("fit_env", doc);
     ctx.say(format!(
-        "chose K = {} (relative L2 {:.4}{}); wrote {}, {}, {}, {}",
+        "chose K = {} (relative L2 {:.4}, log L2 {:.4}{}); wrote {}, {}, {}, {}",
         chosen.lobes,
         chosen.relative_l2,
+        chosen.relative_log_l2,
         if chosen.within_tolerance { "" } else { ", tolerance not met" },
         sg_json.display(),
         exr.display(),
