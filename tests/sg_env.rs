@@ -303,3 +303,18 @@ fn bench_env_writes_csv_json_and_chart() {
     let stdout = String::from_utf8_lossy(&st.stdout);
     assert!(stdout.contains("rel L2") && stdout.contains("sub/b"), "{stdout}");
 }
+
+#[test]
+fn wgpu_fit_follows_the_cpu_fit() {
+    let gpu = Backend::wgpu_for_tests().unwrap_or_else(|e| panic!("the test command (bash scripts/test.sh) installs lavapipe; no adapter: {e}"));
+    let rgb = render_latlong(&known_env(), 64, 32, LatlongConvention::Blender);
+    let target = FitTarget::from_map(&rgb, 64, 32, LatlongConvention::Blender, 64);
+    let cfg = FitConfig { lobes: 8, iterations: 25, ..FitConfig::default() };
+    let a = fit_sgs(&Backend::cpu(), &target, &cfg, |_| {}).unwrap();
+    let b = fit_sgs(&gpu, &target, &cfg, |_| {}).unwrap();
+    assert_eq!((a.skipped_steps, b.skipped_steps), (0, 0));
+    let flat = |e: &EnvSgs| e.lobes.iter().flat_map(|l| [l.axis.to_vec(), vec![l.sharpness], l.amplitude.to_vec()].concat()).collect::<Vec<f32>>();
+    // 25 Adam steps amplify f32-vs-f64 gradient differences a little: 1% relative, 1e-3 absolute.
+    assert_close("wgpu fit vs cpu fit", &flat(&b.env), &flat(&a.env), Tolerance::new(1e-2, 1e-3));
+    assert_close("final loss", &[b.final_loss], &[a.final_loss], Tolerance::new(1e-2, 0.0));
+}
