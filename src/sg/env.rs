@@ -130,6 +130,51 @@ pub fn write_latlong_exr(env: &EnvSgs, path: &Path, width: usize, conv: LatlongC
     crate::image_io::write_exr_rgb(path, width, height, &rgb)
 }
 
+/// A latlong HDR environment read from an EXR: RGB (alpha dropped), linear, row 0 = zenith.
+#[derive(Clone, Debug)]
+pub struct LatlongMap {
+    pub width: usize,
+    pub height: usize,
+    /// RGB, row-major from the top row.
+    pub rgb: Vec<f32>,
+    /// Values below zero that were clamped to 0 (DWA ringing), and the most negative one.
+    pub clamped_negatives: usize,
+    pub min_value: f32,
+}
+
+/// Read a latlong environment EXR (any compression the `exr` crate decodes: none, RLE, ZIP,
+/// PIZ, PXR24, B44, DWAA/DWAB). Negative values are clamped to 0 and counted: shipped maps hold
+/// DWA ringing (>= -0.004) and real negatives (InvRender envmap6, -0.27). NaN/Inf pixels and
+/// non-2:1 maps are a [`DataError`] naming the file.
+pub fn read_latlong_exr(path: &Path) -> Result<LatlongMap, DataError> {
+    if !path.exists() {
+        return Err(DataError::new(path, "file not found"));
+    }
+    if !path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr")) {
+        return Err(DataError::new(path, "not an .exr file (fit-env reads latlong OpenEXR maps)"));
+    }
+    let img = crate::image_io::read_image_linear(path)?;
+    let (w, h) = (img.width, img.height);
+    if w != 2 * h {
+        return Err(DataError::new(path, format!("a latlong map must be 2:1, this one is {w}x{h}")));
+    }
+    let mut rgb = img.rgb();
+    if let Some(i) = rgb.iter().position(|v| !v.is_finite()) {
+        let p = i / 3;
+        return Err(DataError::new(path, format!("non-finite value {} at pixel ({}, {})", rgb[i], p % w, p / w)));
+    }
+    let mut clamped = 0;
+    let mut min_value = f32::INFINITY;
+    for v in &mut rgb {
+        min_value = min_value.min(*v);
+        if *v < 0.0 {
+            *v = 0.0;
+            clamped += 1;
+        }
+    }
+    Ok(LatlongMap { width: w, height: h, rgb, clamped_negatives: clamped, min_value })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

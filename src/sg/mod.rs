@@ -3,5 +3,6 @@
 pub mod bench;
 pub mod cli;
 pub mod env;
+pub mod fit;
 pub mod shade;
 pub mod shade_gpu;

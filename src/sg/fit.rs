@@ -1,0 +1,566 @@
+//! Fit K spherical Gaussians to an HDR latlong map (`fit-env`): parametrisation, initialisation,
+//! loss + analytic gradient (cpu twin in f64), the Adam loop, error metrics and the `auto` ladder.
+//!
+//! Parameters, 7 per lobe: `[ξx, ξy, ξz, rλ, rμr, rμg, rμb]` with axis `a = ξ/‖ξ‖`, sharpness
+//! `λ = exp(rλ)` (> 0) and amplitude `μ = exp(rμ)` (> 0): every value of the raw parameters is a
+//! valid environment, so Adam needs no projection. Exp (not softplus) keeps Adam's steps relative,
+//! which suits amplitudes spanning 1e-3 .. 3e4 in one map.
+//!
+//! Loss (on a downsampled, area-averaged map with solid-angle weights `w_p ∝ sin θ`, Σw = 1):
+//! `L = Σ_p w_p Σ_c (log1p(f_pc) − log1p(t_pc))² / 3`. Plain L2 on radiance lets the sun (up to
+//! 3e4) dominate and leaves the rest of the sky black; log1p is L2 for dim pixels and relative
+//! for bright ones.
+
+use rayon::prelude::*;
+use serde::Serialize;
+
+use crate::backend::{Backend, BackendError, Tensor};
+use crate::nn::adam::{AdamConfig, AdamItem, AdamState, LrSchedule};
+use crate::sg::env::{latlong_dir, EnvSgs, LatlongConvention, SgLobe};
+
+/// Raw parameters per lobe.
+pub const PARAMS_PER_LOBE: usize = 7;
+/// The `--lobes auto` ladder.
+pub const LOBE_LADDER: [usize; 5] = [8, 16, 32, 64, 128];
+/// Default tolerance of `--lobes auto` on the relative log-space error (`relative_log_l2`) of the
+/// full-res re-render. The auto choice uses the log-space error because the radiance-space relative
+/// L2 of a map with a sun is dominated by a few pixels no K ≤ 128 resolves (sunset.exr: 0.99 at
+/// K = 32 while the sky matches to 0.16 in log space), so it would pick 128 for every outdoor map.
+pub const DEFAULT_TOLERANCE: f64 = 0.25;
+
+/// What a fit needs beyond the map.
+#[derive(Clone, Debug, Serialize)]
+pub struct FitConfig {
+    pub lobes: usize,
+    pub iterations: usize,
+    /// Adam base learning rate (decays exponentially to 10% over the run).
+    pub lr: f32,
+    pub seed: u64,
+    /// Width of the downsampled map the loss sees (height = width / 2).
+    pub fit_width: usize,
+}
+
+impl Default for FitConfig {
+    fn default() -> Self {
+        Self { lobes: 32, iterations: 300, lr: 0.05, seed: 0, fit_width: 128 }
+    }
+}
+
+/// The downsampled map the loss sees: per pixel RGB target, direction and solid-angle weight.
+#[derive(Clone, Debug)]
+pub struct FitTarget {
+    pub width: usize,
+    pub height: usize,
+    pub rgb: Vec<f32>,
+    /// Per pixel `[dx, dy, dz, weight]` (weights sum to 1).
+    pub dir_weight: Vec<[f32; 4]>,
+}
+
+/// Solid-angle weight of latlong row `y` (sin θ at the row centre).
+fn row_weight(y: usize, height: usize) -> f64 {
+    (std::f64::consts::PI * (y as f64 + 0.5) / height as f64).sin()
+}
+
+impl FitTarget {
+    /// Area-average a `width`×`height` RGB map down to `fit_width`×`fit_width/2` (sin θ-weighted
+    /// box filter; no upsampling: a smaller map is used as is).
+    pub fn from_map(rgb: &[f32], width: usize, height: usize, conv: LatlongConvention, fit_width: usize) -> Self {
+        let fw = fit_width.min(width).max(2);
+        let fh = (fw / 2).max(1).min(height);
+        let mut out = vec![0.0f32; fw * fh * 3];
+        out.par_chunks_mut(fw * 3).enumerate().for_each(|(ty, row)| {
+            let (y0, y1) = (ty * height / fh, ((ty + 1) * height / fh).max(ty * height / fh + 1));
+            for tx in 0..fw {
+                let (x0, x1) = (tx * width / fw, ((tx + 1) * width / fw).max(tx * width / fw + 1));
+                let mut acc = [0.0f64; 3];
+                let mut wsum = 0.0f64;
+                for y in y0..y1 {
+                    let w = row_weight(y, height);
+                    for x in x0..x1 {
+                        let i = (y * width + x) * 3;
+                        for c in 0..3 {
+                            acc[c] += w * rgb[i + c] as f64;
+                        }
+                        wsum += w;
+                    }
+                }
+                for c in 0..3 {
+                    row[tx * 3 + c] = (acc[c] / wsum.max(1e-30)) as f32;
+                }
+            }
+        });
+        let total: f64 = (0..fh).map(|y| row_weight(y, fh) * fw as f64).sum();
+        let mut dir_weight = Vec::with_capacity(fw * fh);
+        for y in 0..fh {
+            let w = (row_weight(y, fh) / total) as f32;
+            for x in 0..fw {
+                let d = latlong_dir(conv, x, y, fw, fh);
+                dir_weight.push([d[0], d[1], d[2], w]);
+            }
+        }
+        Self { width: fw, height: fh, rgb: out, dir_weight }
+    }
+
+    /// Nearest pixel value of the target in direction `d`.
+    fn lookup(&self, d: [f32; 3]) -> [f32; 3] {
+        let mut best = (f32::MIN, 0);
+        for (i, p) in self.dir_weight.iter().enumerate() {
+            let dot = p[0] * d[0] + p[1] * d[1] + p[2] * d[2];
+            if dot > best.0 {
+                best = (dot, i);
+            }
+        }
+        let i = best.1 * 3;
+        [self.rgb[i], self.rgb[i + 1], self.rgb[i + 2]]
+    }
+}
+
+/// Points on a Fibonacci sphere (the paper's lobe axes).
+pub fn fibonacci_sphere(n: usize) -> Vec<[f32; 3]> {
+    let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+    (0..n)
+        .map(|i| {
+            let y = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
+            let r = (1.0 - y * y).max(0.0).sqrt();
+            let phi = golden * i as f64;
+            [(r * phi.cos()) as f32, y as f32, (r * phi.sin()) as f32]
+        })
+        .collect()
+}
+
+/// Raw parameters → lobes.
+pub fn params_to_env(params: &[f32]) -> EnvSgs {
+    let lobes = params
+        .chunks_exact(PARAMS_PER_LOBE)
+        .map(|p| {
+            let n = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt().max(1e-20);
+            SgLobe {
+                axis: [p[0] / n, p[1] / n, p[2] / n],
+                sharpness: p[3].exp(),
+                amplitude: [p[4].exp(), p[5].exp(), p[6].exp()],
+            }
+        })
+        .collect();
+    EnvSgs { lobes }
+}
+
+/// Lobes → raw parameters (amplitudes floored at 1e-8 so the log exists).
+pub fn env_to_params(env: &EnvSgs) -> Vec<f32> {
+    env.lobes
+        .iter()
+        .flat_map(|l| {
+            let m = |v: f32| v.max(1e-8).ln();
+            [l.axis[0], l.axis[1], l.axis[2], l.sharpness.max(1e-6).ln(), m(l.amplitude[0]), m(l.amplitude[1]), m(l.amplitude[2])]
+        })
+        .collect()
+}
+
+/// The paper's initialisation, deterministic given `seed`: Fibonacci axes,
+/// λ = 10 + |20·N(0,1)|, μ = the map at the axis, then scaled per channel so the
+/// solid-angle mean of the SG render matches the map's.
+pub fn init_params(target: &FitTarget, lobes: usize, seed: u64) -> Vec<f32> {
+    use rand_distr::{Distribution, StandardNormal};
+    let mut rng = crate::util::rng(seed);
+    let axes = fibonacci_sphere(lobes);
+    let mut env = EnvSgs {
+        lobes: axes
+            .iter()
+            .map(|&a| {
+                let z: f64 = StandardNormal.sample(&mut rng);
+                let t = target.lookup(a);
+                SgLobe { axis: a, sharpness: (10.0 + (20.0 * z).abs()) as f32, amplitude: t.map(|v| v.max(1e-4)) }
+            })
+            .collect(),
+    };
+    let mut mean_map = [0.0f64; 3];
+    let mut mean_fit = [0.0f64; 3];
+    for (i, p) in target.dir_weight.iter().enumerate() {
+        let f = env.eval([p[0], p[1], p[2]]);
+        for c in 0..3 {
+            mean_map[c] += p[3] as f64 * target.rgb[i * 3 + c].max(0.0) as f64;
+            mean_fit[c] += p[3] as f64 * f[c] as f64;
+        }
+    }
+    for l in &mut env.lobes {
+        for c in 0..3 {
+            l.amplitude[c] *= (mean_map[c].max(1e-6) / mean_fit[c].max(1e-12)) as f32;
+        }
+    }
+    env_to_params(&env)
+}
+
+/// Loss and its gradient w.r.t. the raw parameters, cpu reference in f64.
+pub fn loss_grad_f64(params: &[f64], target: &FitTarget) -> (f64, Vec<f64>) {
+    let k = params.len() / PARAMS_PER_LOBE;
+    struct Lobe {
+        a: [f64; 3],
+        inv_n: f64,
+        lambda: f64,
+        mu: [f64; 3],
+    }
+    let lobes: Vec<Lobe> = params
+        .chunks_exact(PARAMS_PER_LOBE)
+        .map(|p| {
+            let n = (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt().max(1e-20);
+            Lobe { a: [p[0] / n, p[1] / n, p[2] / n], inv_n: 1.0 / n, lambda: p[3].exp(), mu: [p[4].exp(), p[5].exp(), p[6].exp()] }
+        })
+        .collect();
+    // Per lobe accumulators: [Vx, Vy, Vz, dL/dλ, dL/dμr, dL/dμg, dL/dμb] with
+    // V = Σ_p (Σ_c e_pc μ_kc) g_k ω (the axis gradient is λ·(V − a(a·V))/‖ξ‖).
+    let (loss, acc) = target
+        .dir_weight
+        .par_iter()
+        .enumerate()
+        .fold(
+            || (0.0f64, vec![0.0f64; k * PARAMS_PER_LOBE], vec![0.0f64; k]),
+            |(mut loss, mut acc, mut g), (i, p)| {
+                let w = [p[0] as f64, p[1] as f64, p[2] as f64];
+                let mut f = [0.0f64; 3];
+                for (j, l) in lobes.iter().enumerate() {
+                    let cos = l.a[0] * w[0] + l.a[1] * w[1] + l.a[2] * w[2];
+                    g[j] = (l.lambda * (cos - 1.0)).exp();
+                    for c in 0..3 {
+                        f[c] += l.mu[c] * g[j];
+                    }
+                }
+                let mut e = [0.0f64; 3];
+                for c in 0..3 {
+                    let t = (target.rgb[i * 3 + c] as f64).max(0.0);
+                    let r = f[c].ln_1p() - t.ln_1p();
+                    loss += p[3] as f64 * r * r / 3.0;
+                    e[c] = 2.0 * p[3] as f64 * r / (3.0 * (1.0 + f[c]));
+                }
+                for (j, l) in lobes.iter().enumerate() {
+                    let s = (e[0] * l.mu[0] + e[1] * l.mu[1] + e[2] * l.mu[2]) * g[j];
+                    let cos = l.a[0] * w[0] + l.a[1] * w[1] + l.a[2] * w[2];
+                    let o = j * PARAMS_PER_LOBE;
+                    acc[o] += s * w[0];
+                    acc[o + 1] += s * w[1];
+                    acc[o + 2] += s * w[2];
+                    acc[o + 3] += s * (cos - 1.0);
+                    for c in 0..3 {
+                        acc[o + 4 + c] += e[c] * g[j];
+                    }
+                }
+                (loss, acc, g)
+            },
+        )
+        .map(|(l, a, _)| (l, a))
+        .reduce(
+            || (0.0, vec![0.0; k * PARAMS_PER_LOBE]),
+            |(l1, mut a1), (l2, a2)| {
+                for (x, y) in a1.iter_mut().zip(&a2) {
+                    *x += y;
+                }
+                (l1 + l2, a1)
+            },
+        );
+    let mut grad = vec![0.0f64; params.len()];
+    for (j, l) in lobes.iter().enumerate() {
+        let o = j * PARAMS_PER_LOBE;
+        let v = [acc[o], acc[o + 1], acc[o + 2]];
+        let av = l.a[0] * v[0] + l.a[1] * v[1] + l.a[2] * v[2];
+        for d in 0..3 {
+            grad[o + d] = l.lambda * (v[d] - l.a[d] * av) * l.inv_n;
+        }
+        grad[o + 3] = acc[o + 3] * l.lambda;
+        for c in 0..3 {
+            grad[o + 4 + c] = acc[o + 4 + c] * l.mu[c];
+        }
+    }
+    (loss, grad)
+}
+
+/// The loss alone (f64), for finite differences.
+pub fn loss_f64(params: &[f64], target: &FitTarget) -> f64 {
+    loss_grad_f64(params, target).0
+}
+
+/// Solid-angle-weighted errors of an SG environment against a full-resolution map.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct FitError {
+    /// sqrt(Σ w‖f − t‖² / Σ w‖t‖²) over every pixel and channel.
+    pub relative_l2: f64,
+    /// sqrt(Σ w‖log1p f − log1p t‖² / Σ w‖log1p t‖²): how the dim sky is matched.
+    pub relative_log_l2: f64,
+}
+
+/// Render `env` at the map's resolution and compare (negative map values count as 0).
+pub fn fit_error(env: &EnvSgs, rgb: &[f32], width: usize, height: usize, conv: LatlongConvention) -> FitError {
+    let (n1, d1, n2, d2) = (0..height)
+        .into_par_iter()
+        .map(|y| {
+            let w = row_weight(y, height);
+            let mut s = [0.0f64; 4];
+            for x in 0..width {
+                let f = env.eval(latlong_dir(conv, x, y, width, height));
+                for c in 0..3 {
+                    let t = (rgb[(y * width + x) * 3 + c] as f64).max(0.0);
+                    let fv = f[c] as f64;
+                    s[0] += w * (fv - t) * (fv - t);
+                    s[1] += w * t * t;
+                    let (lf, lt) = (fv.ln_1p(), t.ln_1p());
+                    s[2] += w * (lf - lt) * (lf - lt);
+                    s[3] += w * lt * lt;
+                }
+            }
+            (s[0], s[1], s[2], s[3])
+        })
+        .reduce(|| (0.0, 0.0, 0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2, a.3 + b.3));
+    FitError { relative_l2: (n1 / d1.max(1e-30)).sqrt(), relative_log_l2: (n2 / d2.max(1e-30)).sqrt() }
+}
+
+/// Result of one fit.
+#[derive(Clone, Debug)]
+pub struct FitResult {
+    pub env: EnvSgs,
+    pub iterations: usize,
+    /// Adam steps skipped by the NaN/Inf guard.
+    pub skipped_steps: usize,
+    pub final_loss: f64,
+    pub seconds: f64,
+}
+
+/// Fit `cfg.lobes` SGs to `target` with Adam on `backend`. `on_step(i)` is called after
+/// every iteration (progress bars).
+pub fn fit_sgs(backend: &Backend, target: &FitTarget, cfg: &FitConfig, mut on_step: impl FnMut(usize)) -> Result<FitResult, BackendError> {
+    if cfg.lobes == 0 {
+        return Err(BackendError::Config("fit-env: lobes must be > 0".into()));
+    }
+    let t0 = std::time::Instant::now();
+    let init = init_params(target, cfg.lobes, cfg.seed);
+    let adam = AdamConfig::with_lr(cfg.lr);
+    let schedule = LrSchedule::Exponential { decay_rate: 0.1, decay_steps: cfg.iterations.max(1) as u64 };
+    let mut params = backend.upload(&init);
+    let mut state = AdamState::new(backend, init.len());
+    let mut skipped = 0;
+    let gpu = match backend {
+        Backend::Gpu(g) => Some(gpu::FitKernels::new(g, target, cfg.lobes)?),
+        Backend::Cpu(_) => None,
+    };
+    for i in 0..cfg.iterations {
+        let grads: Tensor = match &gpu {
+            Some(k) => k.gradient(&params)?,
+            None => {
+                let p: Vec<f64> = params.host()?.iter().map(|&v| v as f64).collect();
+                let (_, g) = loss_grad_f64(&p, target);
+                Tensor::Host(g.iter().map(|&v| v as f32).collect())
+            }
+        };
+        let lr = schedule.lr_at(adam.lr, state.step);
+        let rep = backend.adam_step_group(&adam, &mut [AdamItem { params: &mut params, grads: &grads, state: &mut state }], lr)?;
+        if !rep.applied {
+            skipped += 1;
+        }
+        on_step(i);
+    }
+    let raw = backend.to_vec(&params)?;
+    let p64: Vec<f64> = raw.iter().map(|&v| v as f64).collect();
+    let final_loss = loss_f64(&p64, target);
+    Ok(FitResult { env: params_to_env(&raw), iterations: cfg.iterations, skipped_steps: skipped, final_loss, seconds: t0.elapsed().as_secs_f64() })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::testing::{check_grad, Tolerance};
+
+    #[test]
+    fn fibonacci_axes_are_unit_and_spread() {
+        let a = fibonacci_sphere(64);
+        let mean: [f32; 3] = a.iter().fold([0.0; 3], |s, v| [s[0] + v[0], s[1] + v[1], s[2] + v[2]]);
+        for v in &a {
+            assert!(((v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt() - 1.0).abs() < 1e-5);
+        }
+        assert!(mean.iter().all(|m| (m / 64.0).abs() < 0.05), "{mean:?}");
+    }
+
+    #[test]
+    fn params_round_trip() {
+        let env = EnvSgs { lobes: vec![SgLobe { axis: [0.0, 0.6, 0.8], sharpness: 12.0, amplitude: [1.0, 2.0, 0.5] }] };
+        let back = params_to_env(&env_to_params(&env));
+        let l = back.lobes[0];
+        assert!((l.sharpness - 12.0).abs() < 1e-4 && (l.amplitude[1] - 2.0).abs() < 1e-5 && (l.axis[2] - 0.8).abs() < 1e-6);
+    }
+
+    #[test]
+    fn loss_gradient_matches_finite_differences() {
+        // A small random map and 3 lobes with unnormalised axes.
+        let (w, h) = (16, 8);
+        let rgb: Vec<f32> = (0..w * h * 3).map(|i| ((i * 37 % 101) as f32 / 25.0).powi(2)).collect();
+        let t = FitTarget::from_map(&rgb, w, h, LatlongConvention::OpenExrUsd, 16);
+        let params: Vec<f64> =
+            vec![0.3, 0.9, -0.2, 1.5, 0.1, -0.5, 0.7, -0.8, 0.1, 0.7, 2.2, 1.0, 0.2, -1.0, 0.2, -0.6, -1.1, 0.8, -0.3, 0.0, 0.4];
+        let (_, g) = loss_grad_f64(&params, &t);
+        check_grad("fit loss", &params, &g, 1e-6, Tolerance::new(1e-5, 1e-8), |p| loss_f64(p, &t));
+    }
+}
+
+/// The wgpu launcher of `shaders/sg_fit.wgsl`.
+pub mod gpu {
+    use std::sync::Arc;
+
+    use crate::backend::gpu::{groups_1d, shaders, Access, GpuBuffer, GpuContext, KernelSpec};
+    use crate::backend::{BackendError, Tensor};
+
+    use super::{FitTarget, PARAMS_PER_LOBE};
+
+    pub const SG_FIT_WGSL: &str = include_str!("../../shaders/sg_fit.wgsl");
+    /// Pixels per chunk of the per-lobe partial sums.
+    const CHUNK: u32 = 256;
+
+    /// Mirrors `SgFitParams` in `shaders/sg_fit.wgsl`.
+    #[repr(C)]
+    #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+    pub struct SgFitParams {
+        pub n_pixels: u32,
+        pub n_lobes: u32,
+        pub n_chunks: u32,
+        pub chunk: u32,
+    }
+    const _: () = assert!(std::mem::size_of::<SgFitParams>() == 16);
+
+    /// Buffers for one target and lobe count, reused every iteration.
+    pub struct FitKernels {
+        ctx: Arc<GpuContext>,
+        p: SgFitParams,
+        target: GpuBuffer,
+        dir_weight: GpuBuffer,
+        resid: GpuBuffer,
+        partials: GpuBuffer,
+        loss: GpuBuffer,
+    }
+
+    fn spec() -> KernelSpec {
+        use Access::*;
+        KernelSpec::new(true, &[Read, Read, Read, ReadWrite, ReadWrite, ReadWrite, ReadWrite])
+    }
+
+    impl FitKernels {
+        pub fn new(ctx: &Arc<GpuContext>, target: &FitTarget, lobes: usize) -> Result<Self, BackendError> {
+            let n = target.dir_weight.len();
+            let n_chunks = n.div_ceil(CHUNK as usize);
+            let dw: Vec<f32> = target.dir_weight.iter().flatten().copied().collect();
+            Ok(Self {
+                ctx: ctx.clone(),
+                p: SgFitParams { n_pixels: n as u32, n_lobes: lobes as u32, n_chunks: n_chunks as u32, chunk: CHUNK },
+                target: ctx.upload_f32("sg_fit target", &target.rgb),
+                dir_weight: ctx.upload_f32("sg_fit dirs", &dw),
+                resid: ctx.zeros_f32("sg_fit resid", n * 4),
+                partials: ctx.zeros_f32("sg_fit partials", n_chunks * lobes * PARAMS_PER_LOBE),
+                loss: ctx.zeros_f32("sg_fit loss", 1),
+            })
+        }
+
+        /// The loss gradient w.r.t. `params` (a device tensor of K·7 raw parameters), as a new
+        /// device tensor. Three dispatches in one submission.
+        pub fn gradient(&self, params: &Tensor) -> Result<Tensor, BackendError> {
+            let Tensor::Device(raw) = params else {
+                return Err(BackendError::Shape("sg_fit: parameters are not on the GPU".into()));
+            };
+            let k = self.p.n_lobes as usize;
+            if raw.len != k * PARAMS_PER_LOBE {
+                return Err(BackendError::Shape(format!("sg_fit: {} parameters for {k} lobes", raw.len)));
+            }
+            let grads = self.ctx.zeros_f32("sg_fit grads", k * PARAMS_PER_LOBE);
+            self.run(raw, &grads)?;
+            Ok(Tensor::Device(grads))
+        }
+
+        /// Gradient and loss read back to the host (tests, reports).
+        pub fn gradient_host(&self, params: &[f32]) -> Result<(f32, Vec<f32>), BackendError> {
+            let raw = self.ctx.upload_f32("sg_fit raw", params);
+            let grads = self.ctx.zeros_f32("sg_fit grads", params.len());
+            self.run(&raw, &grads)?;
+            Ok((self.ctx.read_f32(&self.loss)?[0], self.ctx.read_f32(&grads)?))
+        }
+
+        fn run(&self, raw: &GpuBuffer, grads: &GpuBuffer) -> Result<(), BackendError> {
+            let src = shaders::with_lib(SG_FIT_WGSL);
+            let spec = spec();
+            let k_res = self.ctx.kernel("sg_fit", &src, "residual", &spec)?;
+            let k_part = self.ctx.kernel("sg_fit", &src, "lobe_partials", &spec)?;
+            let k_red = self.ctx.kernel("sg_fit", &src, "reduce", &spec)?;
+            let u = bytemuck::bytes_of(&self.p);
+            let binds = || {
+                [
+                    raw.into(),
+                    (&self.target).into(),
+                    (&self.dir_weight).into(),
+                    (&self.resid).into(),
+                    (&self.partials).into(),
+                    grads.into(),
+                    (&self.loss).into(),
+                ]
+            };
+            let mut b = self.ctx.batch("sg_fit");
+            b.dispatch(&k_res, Some(u), &binds(), groups_1d(self.p.n_pixels as usize, 64))?;
+            b.dispatch(&k_part, Some(u), &binds(), groups_1d((self.p.n_chunks * self.p.n_lobes) as usize, 64))?;
+            b.dispatch(&k_red, Some(u), &binds(), groups_1d(self.p.n_lobes as usize + 1, 64))?;
+            b.submit()
+        }
+    }
+}
+
+/// One rung of a lobe ladder: a fit with K lobes and its errors on the full-res map.
+#[derive(Clone, Debug, Serialize)]
+pub struct Rung {
+    pub lobes: usize,
+    pub relative_l2: f64,
+    pub relative_log_l2: f64,
+    pub final_loss: f64,
+    pub iterations: usize,
+    pub skipped_steps: usize,
+    pub fit_seconds: f64,
+    pub within_tolerance: bool,
+    #[serde(skip)]
+    pub env: EnvSgs,
+}
+
+/// Fit every K of `ladder` in order (stopping at the first within `tolerance` when
+/// `stop_when_within`). `on_step(k, i)` is called after every Adam iteration.
+#[allow(clippy::too_many_arguments)]
+pub fn fit_ladder(
+    backend: &Backend,
+    rgb: &[f32],
+    width: usize,
+    height: usize,
+    conv: LatlongConvention,
+    ladder: &[usize],
+    tolerance: f64,
+    base: &FitConfig,
+    stop_when_within: bool,
+    mut on_rung: impl FnMut(&Rung),
+    mut on_step: impl FnMut(usize, usize),
+) -> Result<Vec<Rung>, BackendError> {
+    let target = FitTarget::from_map(rgb, width, height, conv, base.fit_width);
+    let mut rungs = Vec::new();
+    for &k in ladder {
+        let cfg = FitConfig { lobes: k, ..base.clone() };
+        let r = fit_sgs(backend, &target, &cfg, |i| on_step(k, i))?;
+        let err = fit_error(&r.env, rgb, width, height, conv);
+        let rung = Rung {
+            lobes: k,
+            relative_l2: err.relative_l2,
+            relative_log_l2: err.relative_log_l2,
+            final_loss: r.final_loss,
+            iterations: r.iterations,
+            skipped_steps: r.skipped_steps,
+            fit_seconds: r.seconds,
+            within_tolerance: err.relative_log_l2 <= tolerance,
+            env: r.env,
+        };
+        on_rung(&rung);
+        let done = stop_when_within && rung.within_tolerance;
+        rungs.push(rung);
+        if done {
+            break;
+        }
+    }
+    Ok(rungs)
+}
+
+/// The K `--lobes auto` picks from fitted rungs: the smallest within tolerance, else the largest.
+pub fn auto_choice(rungs: &[Rung]) -> Option<&Rung> {
+    rungs.iter().filter(|r| r.within_tolerance).min_by_key(|r| r.lobes).or_else(|| rungs.iter().max_by_key(|r| r.lobes))
+}
