@@ -58,8 +58,10 @@ def reset_scene(args):
     return scene
 
 
-def make_world(scene, env_path):
-    """The EXR as the world, rotated so it reads in the OpenEXR/USD convention."""
+def make_world(scene, env_path, convention="usd"):
+    """The EXR as the world. convention "usd": the map is in the OpenEXR/USD convention (centre
+    along +Z of the glTF/USD frame), rotated 90 degrees about Blender's Z to read that way;
+    "blender": the map is already in Blender's World convention and is used as it is."""
     world = bpy.data.worlds.new("World")
     scene.world = world
     world.use_nodes = True
@@ -74,7 +76,8 @@ def make_world(scene, env_path):
         coord = nt.nodes.new("ShaderNodeTexCoord")
         mapping = nt.nodes.new("ShaderNodeMapping")
         mapping.vector_type = "POINT"
-        mapping.inputs["Rotation"].default_value = (0.0, 0.0, math.radians(90.0))
+        angle = 90.0 if convention == "usd" else 0.0
+        mapping.inputs["Rotation"].default_value = (0.0, 0.0, math.radians(angle))
         nt.links.new(coord.outputs["Generated"], mapping.inputs["Vector"])
         nt.links.new(mapping.outputs["Vector"], tex.inputs["Vector"])
         nt.links.new(tex.outputs["Color"], bg.inputs["Color"])
@@ -278,6 +281,8 @@ def main():
     ap.add_argument("--denoise", action="store_true")
     ap.add_argument("--skip-usd", action="store_true")
     ap.add_argument("--json", help="report path (default: OUT/blender_report.json)")
+    ap.add_argument("--env-convention", choices=["usd", "blender"], default="usd",
+                    help="latlong convention of --env (pii-bake writes env.exr in the USD one)")
     args = ap.parse_args(argv)
 
     os.makedirs(args.out, exist_ok=True)
@@ -292,7 +297,7 @@ def main():
     renders = {}
 
     scene = reset_scene(args)
-    make_world(scene, env)
+    make_world(scene, env, args.env_convention)
     report["glb_import"] = import_summary(bpy.ops.import_scene.gltf(filepath=glbs[0]))
     renders["glb"] = render_cameras(scene, cameras, os.path.join(args.out, "glb"))
 

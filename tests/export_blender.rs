@@ -165,8 +165,9 @@ fn fidelity(shape: AnalyticShape, material: AnalyticMaterial) {
 #[test]
 fn one_lobe_environment_lights_the_same_side_in_blender_and_usd() {
     // A single sharp lobe along our +X: seen from +Z (right = +X), the right half of the sphere
-    // must be lit and the left half dark, in the glTF import (our world mapping) and in the USD
-    // import (Blender's own DomeLight conversion).
+    // must be lit and the left half dark: in the glTF import lit by the shipped USD-convention
+    // EXR (our world mapping), in the USD import (Blender's own DomeLight conversion), and in the
+    // glTF import lit by the lobe written in Blender's World convention, used unrotated.
     let python = std::env::var("PII_PYTHON").unwrap_or_else(|_| {
         panic!("PII_PYTHON is not set: run the tests with `bash scripts/test.sh` (it installs bpy)")
     });
@@ -205,25 +206,37 @@ fn one_lobe_environment_lights_the_same_side_in_blender_and_usd() {
     std::fs::write(&cams_path, cams.to_string()).unwrap();
     let out = dir.path().join("renders");
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/blender_verify.py");
-    let res = Command::new(&python)
-        .arg(&script)
-        .arg("--asset-dir")
-        .arg(&asset)
-        .arg("--cameras")
-        .arg(&cams_path)
-        .arg("--out")
-        .arg(&out)
-        .args(["--size", "48", "--samples", "16"])
-        .output()
+    let verify = |out: &Path, extra: &[&str]| {
+        let res = Command::new(&python)
+            .arg(&script)
+            .arg("--asset-dir")
+            .arg(&asset)
+            .arg("--cameras")
+            .arg(&cams_path)
+            .arg("--out")
+            .arg(out)
+            .args(["--size", "48", "--samples", "16"])
+            .args(extra)
+            .output()
+            .unwrap();
+        let log = format!(
+            "{}{}",
+            String::from_utf8_lossy(&res.stdout),
+            String::from_utf8_lossy(&res.stderr)
+        );
+        assert!(res.status.success(), "blender_verify.py failed:\n{log}");
+    };
+    // The shipped env.exr (OpenEXR/USD convention): glTF import + our world, and the USD
+    // DomeLight as Blender converts it.
+    verify(&out, &[]);
+    // The same lobe written by us in Blender's World convention, used as the world unrotated.
+    let blender_exr = dir.path().join("env_blender.exr");
+    pii_bake::sg::env::write_latlong_exr(&env, &blender_exr, 256, pii_bake::sg::env::LatlongConvention::Blender)
         .unwrap();
-    let log = format!(
-        "{}{}",
-        String::from_utf8_lossy(&res.stdout),
-        String::from_utf8_lossy(&res.stderr)
-    );
-    assert!(res.status.success(), "blender_verify.py failed:\n{log}");
-    for which in ["glb", "usd"] {
-        let img = image::open(out.join(format!("{which}_cam0.png")))
+    let out_b = dir.path().join("renders_blender");
+    verify(&out_b, &["--env", blender_exr.to_str().unwrap(), "--env-convention", "blender", "--skip-usd"]);
+    for (dir, which) in [(&out, "glb"), (&out, "usd"), (&out_b, "glb")] {
+        let img = image::open(dir.join(format!("{which}_cam0.png")))
             .unwrap()
             .to_rgb8();
         let (w, h) = img.dimensions();
@@ -234,7 +247,8 @@ fn one_lobe_environment_lights_the_same_side_in_blender_and_usd() {
         let (left, right) = (lum(w * 3 / 10), lum(w * 7 / 10));
         assert!(
             right > left + 60,
-            "{which}: the +X lobe should light the right side: left {left}, right {right}"
+            "{}/{which}: the +X lobe should light the right side: left {left}, right {right}",
+            dir.display()
         );
     }
 }

@@ -191,6 +191,8 @@ pub fn chart_svg(rows: &[BenchRow]) -> anyhow::Result<String> {
             .configure_mesh()
             .x_desc("fit time (s)")
             .y_desc("relative log-space L2 error")
+            .y_label_formatter(&|v| format!("{v:.3}"))
+            .x_label_formatter(&|v| format!("{v:.1}"))
             .draw()
             .map_err(|err| anyhow::anyhow!("chart: {err}"))?;
         for (i, m) in maps.iter().enumerate() {
