@@ -3,7 +3,7 @@
 //! lookdev.usda and the .usdz, the textures follow the conventions, and bad output folders
 //! give clear errors.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::Command;
 
 mod common;

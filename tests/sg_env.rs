@@ -176,6 +176,8 @@ fn fit_known(conv: LatlongConvention, env: &EnvSgs, lobes: usize, iterations: us
     let r = fit_sgs(&Backend::cpu(), &target, &cfg, |_| {}).unwrap();
     assert_eq!(r.skipped_steps, 0);
     let err = fit_error(&r.env, &rgb, w, h, conv);
+    // A map that is exactly representable keeps its energy.
+    assert!((err.energy_ratio - 1.0).abs() < 0.1, "{conv:?}: energy ratio {}", err.energy_ratio);
     (r.env, err.relative_l2)
 }
 

@@ -48,6 +48,7 @@ pub struct BenchRow {
     pub lobes: usize,
     pub relative_l2: f64,
     pub relative_log_l2: f64,
+    pub energy_ratio: f64,
     pub fit_seconds: f64,
     pub iterations: usize,
     pub backend: String,
@@ -113,6 +114,7 @@ pub fn run(args: &BenchEnvArgs, ctx: &Context) -> anyhow::Result<()> {
                 lobes: r.lobes,
                 relative_l2: r.relative_l2,
                 relative_log_l2: r.relative_log_l2,
+                energy_ratio: r.energy_ratio,
                 fit_seconds: r.fit_seconds,
                 iterations: r.iterations,
                 backend: backend.name().to_string(),
@@ -135,7 +137,7 @@ pub fn run(args: &BenchEnvArgs, ctx: &Context) -> anyhow::Result<()> {
         "fit_width": args.fit_width,
         "tolerance": args.tolerance,
         "convention": args.convention,
-        "error": "relative_l2: solid-angle-weighted relative L2 of the full-resolution re-render; relative_log_l2: the same on log1p(radiance), which auto_lobes uses",
+        "error": "relative_l2: solid-angle-weighted relative L2 of the full-resolution re-render; relative_log_l2: the same on log1p(radiance), which auto_lobes uses; energy_ratio: solid-angle-integrated radiance of the fit over the map's",
         "rows": rows,
     });
     atomic_write(&json, serde_json::to_string_pretty(&doc)?.as_bytes())?;
@@ -146,22 +148,22 @@ pub fn run(args: &BenchEnvArgs, ctx: &Context) -> anyhow::Result<()> {
 }
 
 pub fn to_csv(rows: &[BenchRow]) -> String {
-    let mut s = String::from("map,width,height,lobes,relative_l2,relative_log_l2,fit_seconds,iterations,backend,auto_lobes\n");
+    let mut s = String::from("map,width,height,lobes,relative_l2,relative_log_l2,energy_ratio,fit_seconds,iterations,backend,auto_lobes\n");
     for r in rows {
         s += &format!(
-            "{},{},{},{},{:.6},{:.6},{:.4},{},{},{}\n",
-            r.map, r.width, r.height, r.lobes, r.relative_l2, r.relative_log_l2, r.fit_seconds, r.iterations, r.backend, r.auto_lobes
+            "{},{},{},{},{:.6},{:.6},{:.4},{:.4},{},{},{}\n",
+            r.map, r.width, r.height, r.lobes, r.relative_l2, r.relative_log_l2, r.energy_ratio, r.fit_seconds, r.iterations, r.backend, r.auto_lobes
         );
     }
     s
 }
 
 fn table(rows: &[BenchRow]) -> String {
-    let mut s = format!("{:<34} {:>4} {:>10} {:>10} {:>8} {:>5}\n", "map", "K", "rel L2", "log L2", "time s", "auto");
+    let mut s = format!("{:<34} {:>4} {:>10} {:>10} {:>8} {:>8} {:>5}\n", "map", "K", "rel L2", "log L2", "energy", "time s", "auto");
     for r in rows {
         s += &format!(
-            "{:<34} {:>4} {:>10.4} {:>10.4} {:>8.2} {:>5}\n",
-            r.map, r.lobes, r.relative_l2, r.relative_log_l2, r.fit_seconds, r.auto_lobes
+            "{:<34} {:>4} {:>10.4} {:>10.4} {:>8.3} {:>8.2} {:>5}\n",
+            r.map, r.lobes, r.relative_l2, r.relative_log_l2, r.energy_ratio, r.fit_seconds, r.auto_lobes
         );
     }
     s

@@ -160,6 +160,7 @@ fn write_outputs(
         } else { "" },
         "relative_l2": chosen.relative_l2,
         "relative_log_l2": chosen.relative_log_l2,
+        "energy_ratio": chosen.energy_ratio,
         "iterations": chosen.iterations,
         "fit_seconds": chosen.fit_seconds,
         "total_seconds": rungs.iter().map(|r| r.fit_seconds).sum::<f64>(),
@@ -173,10 +174,11 @@ fn write_outputs(
     atomic_write(&report, serde_json::to_string_pretty(&doc)?.as_bytes())?;
     ctx.emit("fit_env", doc);
     ctx.say(format!(
-        "chose K = {} (relative L2 {:.4}, log L2 {:.4}{}); wrote {}, {}, {}, {}",
+        "chose K = {} (relative L2 {:.4}, log L2 {:.4}, energy kept {:.3}{}); wrote {}, {}, {}, {}",
         chosen.lobes,
         chosen.relative_l2,
         chosen.relative_log_l2,
+        chosen.energy_ratio,
         if chosen.within_tolerance { "" } else { ", tolerance not met" },
         sg_json.display(),
         exr.display(),

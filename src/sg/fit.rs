@@ -283,15 +283,18 @@ pub struct FitError {
     pub relative_l2: f64,
     /// sqrt(Σ w‖log1p f − log1p t‖² / Σ w‖log1p t‖²): how the dim sky is matched.
     pub relative_log_l2: f64,
+    /// Σ w f / Σ w t over pixels and channels: the fraction of the map's radiant energy the fit
+    /// keeps (what diffuse relighting sees; 1 is right).
+    pub energy_ratio: f64,
 }
 
 /// Render `env` at the map's resolution and compare (negative map values count as 0).
 pub fn fit_error(env: &EnvSgs, rgb: &[f32], width: usize, height: usize, conv: LatlongConvention) -> FitError {
-    let (n1, d1, n2, d2) = (0..height)
+    let (n1, d1, n2, d2, e_fit, e_map) = (0..height)
         .into_par_iter()
         .map(|y| {
             let w = row_weight(y, height);
-            let mut s = [0.0f64; 4];
+            let mut s = [0.0f64; 6];
             for x in 0..width {
                 let f = env.eval(latlong_dir(conv, x, y, width, height));
                 for c in 0..3 {
@@ -302,12 +305,21 @@ pub fn fit_error(env: &EnvSgs, rgb: &[f32], width: usize, height: usize, conv: L
                     let (lf, lt) = (fv.ln_1p(), t.ln_1p());
                     s[2] += w * (lf - lt) * (lf - lt);
                     s[3] += w * lt * lt;
+                    s[4] += w * fv;
+                    s[5] += w * t;
                 }
             }
-            (s[0], s[1], s[2], s[3])
+            (s[0], s[1], s[2], s[3], s[4], s[5])
         })
-        .reduce(|| (0.0, 0.0, 0.0, 0.0), |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2, a.3 + b.3));
-    FitError { relative_l2: (n1 / d1.max(1e-30)).sqrt(), relative_log_l2: (n2 / d2.max(1e-30)).sqrt() }
+        .reduce(
+            || (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+            |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2, a.3 + b.3, a.4 + b.4, a.5 + b.5),
+        );
+    FitError {
+        relative_l2: (n1 / d1.max(1e-30)).sqrt(),
+        relative_log_l2: (n2 / d2.max(1e-30)).sqrt(),
+        energy_ratio: e_fit / e_map.max(1e-30),
+    }
 }
 
 /// Result of one fit.
@@ -508,6 +520,8 @@ pub struct Rung {
     pub lobes: usize,
     pub relative_l2: f64,
     pub relative_log_l2: f64,
+    /// Radiant energy of the fit over that of the map (see [`FitError::energy_ratio`]).
+    pub energy_ratio: f64,
     pub final_loss: f64,
     pub iterations: usize,
     pub skipped_steps: usize,
@@ -543,6 +557,7 @@ pub fn fit_ladder(
             lobes: k,
             relative_l2: err.relative_l2,
             relative_log_l2: err.relative_log_l2,
+            energy_ratio: err.energy_ratio,
             final_loss: r.final_loss,
             iterations: r.iterations,
             skipped_steps: r.skipped_steps,
