@@ -181,19 +181,26 @@ fn load_lobe(j: u32, seed: u32) -> Sg {
 
 const NO_SEED: u32 = 1000u;
 
+struct Sums { spec: vec3<f32>, diff: vec3<f32>, };
+
+// Point i's specular and diffuse sums over all lobes, before the final clamps.
+fn sums(i: u32) -> Sums {
+    let s = load_surface(i, NO_SEED);
+    var t = Sums(vec3<f32>(0.0), vec3<f32>(0.0));
+    for (var j = 0u; j < P.k; j++) {
+        let ct = lobe_contribution(s, load_lobe(j, NO_SEED));
+        t.spec += vec3<f32>(ct.spec.x.v, ct.spec.y.v, ct.spec.z.v);
+        t.diff += vec3<f32>(ct.diff.x.v, ct.diff.y.v, ct.diff.z.v);
+    }
+    return t;
+}
+
 @compute @workgroup_size(64)
 fn shade_forward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let i = linear_index(gid, nwg, WG);
     if (i >= P.n) { return; }
-    let s = load_surface(i, NO_SEED);
-    var spec = vec3<f32>(0.0);
-    var diff = vec3<f32>(0.0);
-    for (var j = 0u; j < P.k; j++) {
-        let ct = lobe_contribution(s, load_lobe(j, NO_SEED));
-        spec += vec3<f32>(ct.spec.x.v, ct.spec.y.v, ct.spec.z.v);
-        diff += vec3<f32>(ct.diff.x.v, ct.diff.y.v, ct.diff.z.v);
-    }
-    let rgb = max(spec, vec3<f32>(0.0)) + max(diff, vec3<f32>(0.0));
+    let t = sums(i);
+    let rgb = max(t.spec, vec3<f32>(0.0)) + max(t.diff, vec3<f32>(0.0));
     rgb_out[i * 3u] = rgb.x;
     rgb_out[i * 3u + 1u] = rgb.y;
     rgb_out[i * 3u + 2u] = rgb.z;
@@ -204,17 +211,10 @@ fn shade_backward(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_wo
     let i = linear_index(gid, nwg, WG);
     if (i >= P.n) { return; }
     // Pass 1: the sums decide which channels the final clamps pass.
-    let s0 = load_surface(i, NO_SEED);
-    var spec = vec3<f32>(0.0);
-    var diff = vec3<f32>(0.0);
-    for (var j = 0u; j < P.k; j++) {
-        let ct = lobe_contribution(s0, load_lobe(j, NO_SEED));
-        spec += vec3<f32>(ct.spec.x.v, ct.spec.y.v, ct.spec.z.v);
-        diff += vec3<f32>(ct.diff.x.v, ct.diff.y.v, ct.diff.z.v);
-    }
+    let t = sums(i);
     let dy = vec3<f32>(d_out[i * 3u], d_out[i * 3u + 1u], d_out[i * 3u + 2u]);
-    let ws = select(vec3<f32>(0.0), dy, spec >= vec3<f32>(0.0));
-    let wd = select(vec3<f32>(0.0), dy, diff >= vec3<f32>(0.0));
+    let ws = select(vec3<f32>(0.0), dy, t.spec >= vec3<f32>(0.0));
+    let wd = select(vec3<f32>(0.0), dy, t.diff >= vec3<f32>(0.0));
     // Pass 2: one seeded run per input.
     for (var seed = 0u; seed < POINT_STRIDE + LOBE_STRIDE; seed++) {
         let s = load_surface(i, seed);
