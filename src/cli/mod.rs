@@ -161,6 +161,12 @@ pub fn main() -> ExitCode {
         }
     };
     init_logging(&cli.global);
+    // Mesa's Vulkan drivers print "error: XDG_RUNTIME_DIR is invalid or not set" to stderr while
+    // wgpu probes adapters on a headless machine; the variable only locates display sockets,
+    // which we never open. Give this process a harmless value rather than alarm the user.
+    if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
+        std::env::set_var("XDG_RUNTIME_DIR", std::env::temp_dir());
+    }
     let ctx = Context::from_global(&cli.global);
     match run(&cli.command, &ctx) {
         Ok(()) => ExitCode::SUCCESS,
