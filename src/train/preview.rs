@@ -210,9 +210,6 @@ impl HullSdf {
         Some(Self { grid, rotation, bounds: Aabb { min: blo, max: bhi } })
     }
 
-    fn to_normalised(&self, q: [f32; 3]) -> [f32; 3] {
-        rot(&self.rotation.transpose(), q)
-    }
 }
 
 impl SdfField for HullSdf {
@@ -224,10 +221,11 @@ impl SdfField for HullSdf {
     }
     fn eval(&self, _backend: &Backend, points: &[[f32; 3]]) -> Result<SdfSamples, BackendError> {
         use rayon::prelude::*;
+        let to_normalised = self.rotation.transpose();
         let (values, gradients) = points
             .par_iter()
             .map(|&q| {
-                let p = self.to_normalised(q);
+                let p = rot(&to_normalised, q);
                 (self.grid.sample(p), rot(&self.rotation, self.grid.gradient(p)))
             })
             .unzip();
@@ -237,19 +235,19 @@ impl SdfField for HullSdf {
 
 /// Photo colour (lit) and a constant roughness, as a [`MaterialField`] in the asset frame.
 pub struct PhotoMaterial<'a> {
-    pub views: Vec<ViewAdapter<'a>>,
+    pub views: Vec<&'a dyn PhotoView>,
     pub hull: &'a HullSdf,
     pub roughness: f32,
     /// Colour for points no view sees (the mean projected colour).
     pub fallback: [f32; 3],
-    /// Smallest feature in asset-frame units handed to the texture-size choice (see `new`).
+    /// The "smallest feature" handed to the texture-size choice, in asset-frame units
+    /// (`run` sets 16 photo pixel footprints: one texel per footprint).
     pub feature: f32,
 }
 
 impl PhotoMaterial<'_> {
     fn colour(&self, p: [f32; 3], n: [f32; 3]) -> Option<[f32; 3]> {
-        let views: Vec<&dyn PhotoView> = self.views.iter().map(|v| v as &dyn PhotoView).collect();
-        project_colour(&views, &self.hull.grid, p, n, 0.1).map(|(c, _)| c.map(|v| v.clamp(0.0, 1.0)))
+        project_colour(&self.views, &self.hull.grid, p, n, 0.1).map(|(c, _)| c.map(|v| v.clamp(0.0, 1.0)))
     }
 }
 
@@ -387,7 +385,6 @@ pub fn run(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
 
     // 3. Material from the photos: one texel per photo pixel footprint at the mean camera
     //    distance (choose_texture_size puts 16 texels on a feature, so the feature is 16 footprints).
-    let mut adapters = adapters;
     let footprint = views
         .iter()
         .map(|v| v.camera.center().length() / v.camera.fx.max(1e-9))
@@ -409,7 +406,7 @@ pub fn run(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
         acc.map(|a| (a / n.max(1) as f64).clamp(0.0, 1.0) as f32)
     };
     let material = PhotoMaterial {
-        views: std::mem::take(&mut adapters),
+        views: adapters.iter().map(|a| a as &dyn PhotoView).collect(),
         hull: &hull,
         roughness: args.roughness,
         fallback,
