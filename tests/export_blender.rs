@@ -3,13 +3,38 @@
 //! renders of the analytic sphere + procedural gradient material built directly in Blender,
 //! from the same cameras under the same EXR.
 
+use std::ffi::OsStr;
 use std::path::Path;
 use std::process::Command;
+
+mod common;
 
 use pii_bake::backend::Backend;
 use pii_bake::export::{export_asset, ExportConfig, TextureSize};
 use pii_bake::mesh::field::{AnalyticMaterial, AnalyticSdf, AnalyticShape};
 use pii_bake::mesh::MeshConfig;
+
+/// Run scripts/blender_verify.py on `asset` from the cameras in `cams`, writing to `out`, and
+/// assert it succeeded.
+fn blender_verify<I, S>(asset: &Path, cams: &Path, out: &Path, extra: I)
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<OsStr>,
+{
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/blender_verify.py");
+    let (ok, log) = common::run(
+        Command::new(common::python())
+            .arg(&script)
+            .arg("--asset-dir")
+            .arg(asset)
+            .arg("--cameras")
+            .arg(cams)
+            .arg("--out")
+            .arg(out)
+            .args(extra),
+    );
+    assert!(ok, "blender_verify.py failed:\n{log}");
+}
 
 #[test]
 fn blender_renders_of_the_export_match_the_analytic_reference() {
@@ -23,9 +48,6 @@ fn blender_renders_of_the_export_match_the_analytic_reference() {
 }
 
 fn fidelity(shape: AnalyticShape, material: AnalyticMaterial) {
-    let python = std::env::var("PII_PYTHON").unwrap_or_else(|_| {
-        panic!("PII_PYTHON is not set: run the tests with `bash scripts/test.sh` (it installs bpy)")
-    });
     let dir = tempfile::tempdir().unwrap();
     let asset = dir.path().join("asset");
     let s = 0.5;
@@ -59,35 +81,12 @@ fn fidelity(shape: AnalyticShape, material: AnalyticMaterial) {
     std::fs::write(&cams_path, cams.to_string()).unwrap();
     let shift = report.origin_shift_m;
     let out = dir.path().join("renders");
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/blender_verify.py");
-    let res = Command::new(&python)
-        .arg(&script)
-        .arg("--asset-dir")
-        .arg(&asset)
-        .arg("--cameras")
-        .arg(&cams_path)
-        .arg("--out")
-        .arg(&out)
-        .args([
-            "--analytic",
-            shape.name(),
-            "--material",
-            material.name(),
-            "--size",
-            "80",
-            "--samples",
-            "32",
-        ])
-        .args(["--metres-per-unit", &s.to_string(), "--origin-shift"])
-        .args(shift.map(|v| v.to_string()))
-        .output()
-        .unwrap();
-    let log = format!(
-        "{}{}",
-        String::from_utf8_lossy(&res.stdout),
-        String::from_utf8_lossy(&res.stderr)
-    );
-    assert!(res.status.success(), "blender_verify.py failed:\n{log}");
+    let mut args: Vec<String> = ["--analytic", shape.name(), "--material", material.name(), "--size", "80", "--samples", "32"]
+        .map(String::from)
+        .into();
+    args.extend(["--metres-per-unit".to_string(), s.to_string(), "--origin-shift".to_string()]);
+    args.extend(shift.map(|v| v.to_string()));
+    blender_verify(&asset, &cams_path, &out, args);
     let text = std::fs::read_to_string(out.join("blender_report.json")).unwrap();
     let rep: serde_json::Value = serde_json::from_str(&text).unwrap();
     assert_eq!(
@@ -168,9 +167,6 @@ fn one_lobe_environment_lights_the_same_side_in_blender_and_usd() {
     // must be lit and the left half dark: in the glTF import lit by the shipped USD-convention
     // EXR (our world mapping), in the USD import (Blender's own DomeLight conversion), and in the
     // glTF import lit by the lobe written in Blender's World convention, used unrotated.
-    let python = std::env::var("PII_PYTHON").unwrap_or_else(|_| {
-        panic!("PII_PYTHON is not set: run the tests with `bash scripts/test.sh` (it installs bpy)")
-    });
     let dir = tempfile::tempdir().unwrap();
     let asset = dir.path().join("asset");
     let env = pii_bake::sg::env::EnvSgs {
@@ -205,36 +201,17 @@ fn one_lobe_environment_lights_the_same_side_in_blender_and_usd() {
     let cams_path = dir.path().join("cams.json");
     std::fs::write(&cams_path, cams.to_string()).unwrap();
     let out = dir.path().join("renders");
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/blender_verify.py");
-    let verify = |out: &Path, extra: &[&str]| {
-        let res = Command::new(&python)
-            .arg(&script)
-            .arg("--asset-dir")
-            .arg(&asset)
-            .arg("--cameras")
-            .arg(&cams_path)
-            .arg("--out")
-            .arg(out)
-            .args(["--size", "48", "--samples", "16"])
-            .args(extra)
-            .output()
-            .unwrap();
-        let log = format!(
-            "{}{}",
-            String::from_utf8_lossy(&res.stdout),
-            String::from_utf8_lossy(&res.stderr)
-        );
-        assert!(res.status.success(), "blender_verify.py failed:\n{log}");
-    };
+    let small = ["--size", "48", "--samples", "16"];
     // The shipped env.exr (OpenEXR/USD convention): glTF import + our world, and the USD
     // DomeLight as Blender converts it.
-    verify(&out, &[]);
+    blender_verify(&asset, &cams_path, &out, small);
     // The same lobe written by us in Blender's World convention, used as the world unrotated.
     let blender_exr = dir.path().join("env_blender.exr");
     pii_bake::sg::env::write_latlong_exr(&env, &blender_exr, 256, pii_bake::sg::env::LatlongConvention::Blender)
         .unwrap();
     let out_b = dir.path().join("renders_blender");
-    verify(&out_b, &["--env", blender_exr.to_str().unwrap(), "--env-convention", "blender", "--skip-usd"]);
+    let blender_env = ["--env", blender_exr.to_str().unwrap(), "--env-convention", "blender", "--skip-usd"];
+    blender_verify(&asset, &cams_path, &out_b, small.into_iter().chain(blender_env));
     for (dir, which) in [(&out, "glb"), (&out, "usd"), (&out_b, "glb")] {
         let img = image::open(dir.join(format!("{which}_cam0.png")))
             .unwrap()
