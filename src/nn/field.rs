@@ -9,10 +9,10 @@
 //!
 //! Parameter layout: `[encoding parameters, MLP parameters]` (see [`crate::nn::mlp`]).
 //!
-//! Encodings: the frequency positional encoding (input included, [`FrequencyPe`]) for the paper
-//! preset, and the raw position concatenated with the multiresolution hash grid of
-//! `nn::encoding` ([`HashGridPe`], NeuS2) for the fast preset. Both run on the host through the
-//! cpu twins of `nn::encoding`; the MLP runs on the chosen backend.
+//! Encodings ([`PositionEncoder`]): the frequency encoding with the input included for the paper
+//! preset, and the raw position concatenated with the multiresolution hash grid (NeuS2) for the
+//! fast preset. Both run on the host through the cpu twins of `nn::encoding`; the MLP runs on the
+//! chosen backend.
 
 use crate::backend::{Backend, BackendError};
 use crate::nn::encoding::{encoding_backward_cpu, encoding_forward_cpu, EncodingConfig};
@@ -31,86 +31,61 @@ pub trait Encoder: Send + Sync + std::fmt::Debug {
     fn backward_params(&self, params: &[f32], x: &[f32], d_enc: &[f32]) -> Vec<f32>;
 }
 
-/// Frequency positional encoding with the input included (IDR/NeRF):
-/// `[x, sin(2^0 x), cos(2^0 x), ..., sin(2^(F-1) x), cos(2^(F-1) x)]`, no parameters.
+/// The field's position encoding, computed by the cpu twins of `nn::encoding`:
+/// - paper preset: the frequency encoding with the input included (IDR/NeRF),
+///   `[x, sin(2^0 x), cos(2^0 x), ..., sin(2^(F-1) x), cos(2^(F-1) x)]`, no parameters;
+/// - fast preset (NeuS2): `[x, grid(x)]`, the raw position (so the geometric initialisation sees
+///   it) followed by the hash grid's `levels·F` features over `[-1, 1]^3`.
 #[derive(Clone, Debug)]
-pub struct FrequencyPe {
-    pub in_dim: usize,
-    pub n_freqs: usize,
+pub struct PositionEncoder {
+    pub encoding: EncodingConfig,
+    /// Prepend the raw position to the encoding's output.
+    pub raw_xyz: bool,
 }
 
-impl Encoder for FrequencyPe {
-    fn in_dim(&self) -> usize {
-        self.in_dim
-    }
-    fn out_dim(&self) -> usize {
-        self.in_dim * (1 + 2 * self.n_freqs)
-    }
-    fn num_params(&self) -> usize {
-        0
-    }
-    fn init(&self, _seed: u64) -> Vec<f32> {
-        Vec::new()
-    }
-    fn forward(&self, _params: &[f32], x: &[f32]) -> Vec<f32> {
-        let d = self.in_dim;
-        let mut out = Vec::with_capacity(x.len() / d * self.out_dim());
-        for p in x.chunks_exact(d) {
-            out.extend_from_slice(p);
-            for f in 0..self.n_freqs {
-                let s = (1u64 << f) as f32;
-                out.extend(p.iter().map(|&v| (s * v).sin()));
-                out.extend(p.iter().map(|&v| (s * v).cos()));
-            }
+impl PositionEncoder {
+    fn raw_dim(&self) -> usize {
+        if self.raw_xyz {
+            3
+        } else {
+            0
         }
-        out
-    }
-    fn backward_params(&self, _params: &[f32], _x: &[f32], _d_enc: &[f32]) -> Vec<f32> {
-        Vec::new()
     }
 }
 
-/// The fast field's encoding (NeuS2): `[x, grid(x)]`, the raw position (so the geometric
-/// initialisation sees it) followed by the hash grid's `levels·F` features. The grid covers
-/// `[-1, 1]^3`, the normalised scene's bounding cube.
-#[derive(Clone, Debug)]
-pub struct HashGridPe {
-    pub grid: EncodingConfig,
-}
-
-impl HashGridPe {
-    fn grid_dim(&self) -> usize {
-        self.grid.out_dim(3)
-    }
-}
-
-impl Encoder for HashGridPe {
+impl Encoder for PositionEncoder {
     fn in_dim(&self) -> usize {
         3
     }
     fn out_dim(&self) -> usize {
-        3 + self.grid_dim()
+        self.raw_dim() + self.encoding.out_dim(3)
     }
     fn num_params(&self) -> usize {
-        self.grid.num_params()
+        self.encoding.num_params()
     }
     fn init(&self, seed: u64) -> Vec<f32> {
-        self.grid.init_params(seed)
+        self.encoding.init_params(seed)
     }
     fn forward(&self, params: &[f32], x: &[f32]) -> Vec<f32> {
-        let g = encoding_forward_cpu(&self.grid, params, x, 3);
-        let gd = self.grid_dim();
+        let enc = encoding_forward_cpu(&self.encoding, params, x, 3);
+        if !self.raw_xyz {
+            return enc;
+        }
+        let ed = self.encoding.out_dim(3);
         let mut out = Vec::with_capacity(x.len() / 3 * self.out_dim());
-        for (p, f) in x.chunks_exact(3).zip(g.chunks_exact(gd)) {
+        for (p, f) in x.chunks_exact(3).zip(enc.chunks_exact(ed)) {
             out.extend_from_slice(p);
             out.extend_from_slice(f);
         }
         out
     }
     fn backward_params(&self, params: &[f32], x: &[f32], d_enc: &[f32]) -> Vec<f32> {
-        let (od, gd) = (self.out_dim(), self.grid_dim());
-        let d_grid: Vec<f32> = d_enc.chunks_exact(od).flat_map(|r| r[3..3 + gd].iter().copied()).collect();
-        encoding_backward_cpu(&self.grid, params, x, 3, &d_grid, false).0
+        if self.encoding.num_params() == 0 {
+            return Vec::new();
+        }
+        let (od, rd) = (self.out_dim(), self.raw_dim());
+        let d: Vec<f32> = d_enc.chunks_exact(od).flat_map(|r| r[rd..].iter().copied()).collect();
+        encoding_backward_cpu(&self.encoding, params, x, 3, &d, false).0
     }
 }
 
@@ -131,7 +106,7 @@ pub enum FieldEncoding {
 
 impl FieldEncoding {
     /// The `nn::encoding` configuration of this encoding (3-D inputs; the hash grid covers
-    /// `[-1, 1]^3`). For the hash grid, the field also feeds the raw position ([`HashGridPe`]).
+    /// `[-1, 1]^3`). For the hash grid, the field also feeds the raw position ([`PositionEncoder::raw_xyz`]).
     pub fn encoding_config(&self) -> EncodingConfig {
         match *self {
             FieldEncoding::Frequency { n_freqs } => EncodingConfig::frequency(n_freqs as u32),
@@ -148,12 +123,15 @@ impl FieldEncoding {
         }
     }
 
+    /// The field's encoder: the hash grid is fed with the raw position beside it (NeuS2).
+    pub fn encoder(&self) -> PositionEncoder {
+        let raw_xyz = matches!(self, FieldEncoding::HashGrid { .. });
+        PositionEncoder { encoding: self.encoding_config(), raw_xyz }
+    }
+
     /// Width of the MLP's input: the encoded 3-D position (raw xyz included).
     pub fn encoded_dim(&self) -> usize {
-        match self {
-            FieldEncoding::Frequency { .. } => self.encoding_config().out_dim(3),
-            FieldEncoding::HashGrid { .. } => 3 + self.encoding_config().out_dim(3),
-        }
+        self.encoder().out_dim()
     }
 }
 
@@ -260,10 +238,7 @@ impl SdfField {
             )));
         }
         config.encoding.encoding_config().validate(3)?;
-        let encoder: Box<dyn Encoder> = match config.encoding {
-            FieldEncoding::Frequency { n_freqs } => Box::new(FrequencyPe { in_dim: 3, n_freqs }),
-            FieldEncoding::HashGrid { .. } => Box::new(HashGridPe { grid: config.encoding.encoding_config() }),
-        };
+        let encoder: Box<dyn Encoder> = Box::new(config.encoding.encoder());
         let mlp = Mlp::new(config.mlp_config(encoder.out_dim()))?;
         Ok(Self {
             config,
@@ -599,8 +574,9 @@ mod grid_tests {
     /// `backward_params(d)`: central differences agree up to f32 rounding.
     #[test]
     fn hash_grid_encoder_backward_matches_finite_differences() {
-        let enc = HashGridPe {
-            grid: EncodingConfig::HashGrid {
+        let enc = PositionEncoder {
+            raw_xyz: true,
+            encoding: EncodingConfig::HashGrid {
                 levels: 3,
                 features_per_level: 2,
                 log2_table_size: 8,
