@@ -131,21 +131,23 @@ fn time_field(
     };
     let (pts, x, d_enc) = (r(batch * 3), r(sub * mlp.in_dim()), r(batch * enc_dim));
     let dy = vec![1e-3f32; sub * mlp.out_dim()];
-    let (pt, et, ptst, xt, dyt, det) = (
-        b.upload(&params),
-        b.upload(&enc_params),
-        b.upload(&pts),
-        b.upload(&x),
-        b.upload(&dy),
-        b.upload(&d_enc),
-    );
+    let (pt, et, ptst, det) = (b.upload(&params), b.upload(&enc_params), b.upload(&pts), b.upload(&d_enc));
+    // MLP inputs for sub-batches of `rows` points: full ones, and the shorter last one.
+    let mlp_io = |rows: usize| (b.upload(&x[..rows * mlp.in_dim()]), b.upload(&dy[..rows * mlp.out_dim()]));
+    let full = mlp_io(sub);
+    let last_rows = batch - (batch.div_ceil(sub) - 1) * sub;
+    let last = (last_rows != sub).then(|| mlp_io(last_rows));
     let reps = batch.div_ceil(sub);
     let pass = |backward: bool, reps: usize| -> anyhow::Result<()> {
         b.encoding_forward(&net.encoding, &et, &ptst, batch)?;
-        for _ in 0..reps {
-            let f = b.mlp_forward(mlp, &pt, &xt, backward)?;
+        for i in 0..reps {
+            let (xt, dyt) = match &last {
+                Some(l) if i + 1 == reps => l,
+                _ => &full,
+            };
+            let f = b.mlp_forward(mlp, &pt, xt, backward)?;
             if backward {
-                b.mlp_backward(mlp, &pt, &f, &dyt)?;
+                b.mlp_backward(mlp, &pt, &f, dyt)?;
             }
         }
         if backward && net.encoding.num_params() > 0 {
