@@ -2,17 +2,26 @@
 // Rust mirror of the params block: `SgFitParams`). cpu twin: `sg::fit::loss_grad_f64`.
 //
 // Raw parameters, 7 per lobe: [xi.x, xi.y, xi.z, log lambda, log mu.r, log mu.g, log mu.b].
-// Loss L = sum_p w_p sum_c (log1p(f_pc) - log1p(t_pc))^2 / 3.
+// Loss L = sum_p w_p sum_c (log1p(f_pc) - log1p(t_pc))^2 / 3
+//        + beta sum_c (ln(E_c + eps) - ln(T_c + eps))^2 / 3,  E_c = sum_k mu_kc S(lambda_k),
+// S(l) = (1 - exp(-2l)) / 2l the solid-angle mean of a unit SG, T_c the map's mean radiance.
 // Three passes, no float atomics:
 //   residual:      per pixel, e_pc = dL/df_pc and the pixel's loss term.
 //   lobe_partials: per (pixel chunk, lobe), the 7 partial sums over the chunk's pixels.
-//   reduce:        per lobe, sum over chunks and apply the chain rule; invocation K sums the loss.
+//   reduce:        per lobe, sum over chunks, add the energy term (every invocation sums E over
+//                  the K lobes itself) and apply the chain rule; invocation K sums the loss.
 struct SgFitParams {
     n_pixels: u32,
     n_lobes: u32,
     n_chunks: u32,
     chunk: u32,
+    mean_r: f32,
+    mean_g: f32,
+    mean_b: f32,
+    energy_weight: f32,
 };
+
+const ENERGY_EPS: f32 = 1e-6;
 
 @group(0) @binding(0) var<uniform> params: SgFitParams;
 @group(0) @binding(1) var<storage, read> raw: array<f32>;
@@ -40,6 +49,26 @@ fn lobe(k: u32) -> Lobe {
     l.lambda = exp(raw[o + 3u]);
     l.mu = exp(vec3<f32>(raw[o + 4u], raw[o + 5u], raw[o + 6u]));
     return l;
+}
+
+// S(lambda) and dS/dlambda (series below 0.05, where f32 cancels).
+fn sg_mean_factor(lambda: f32) -> vec2<f32> {
+    if (lambda < 0.05) {
+        let l = lambda;
+        return vec2<f32>(1.0 - l + 2.0 * l * l / 3.0 - l * l * l / 3.0, -1.0 + 4.0 * l / 3.0 - l * l);
+    }
+    let e = exp(-2.0 * lambda);
+    return vec2<f32>((1.0 - e) / (2.0 * lambda), (2.0 * lambda * e - (1.0 - e)) / (2.0 * lambda * lambda));
+}
+
+// The fit's mean radiance E_c over all lobes.
+fn fit_mean() -> vec3<f32> {
+    var e = vec3<f32>(0.0);
+    for (var k = 0u; k < params.n_lobes; k++) {
+        let l = lobe(k);
+        e += l.mu * sg_mean_factor(l.lambda).x;
+    }
+    return e;
 }
 
 @compute @workgroup_size(64)
@@ -100,6 +129,10 @@ fn reduce(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
         for (var p = 0u; p < params.n_pixels; p++) {
             loss += resid[p].w;
         }
+        if (params.energy_weight > 0.0) {
+            let r = log(fit_mean() + ENERGY_EPS) - log(vec3<f32>(params.mean_r, params.mean_g, params.mean_b) + ENERGY_EPS);
+            loss += params.energy_weight * dot(r, r) / 3.0;
+        }
         loss_out[0] = loss;
         return;
     }
@@ -111,6 +144,17 @@ fn reduce(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
         }
     }
     let l = lobe(k);
+    if (params.energy_weight > 0.0) {
+        let e = fit_mean();
+        let r = log(e + ENERGY_EPS) - log(vec3<f32>(params.mean_r, params.mean_g, params.mean_b) + ENERGY_EPS);
+        let q = 2.0 * params.energy_weight * r / (3.0 * (e + ENERGY_EPS));
+        let sf = sg_mean_factor(l.lambda);
+        // s[3], s[4..6] are multiplied by lambda and mu below.
+        s[3] += dot(q, l.mu) * sf.y;
+        s[4] += q.x * sf.x;
+        s[5] += q.y * sf.x;
+        s[6] += q.z * sf.x;
+    }
     let v = vec3<f32>(s[0], s[1], s[2]);
     let ga = l.lambda * (v - l.a * dot(l.a, v)) * l.inv_n;
     let o = k * 7u;

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use pii_bake::backend::Backend;
 use pii_bake::sg::env::{read_latlong_exr, render_latlong, EnvSgs, LatlongConvention, SgLobe};
-use pii_bake::sg::fit::{fit_error, fit_sgs, gpu::FitKernels, init_params, loss_grad_f64, FitConfig, FitTarget};
+use pii_bake::sg::fit::{fit_error, fit_sgs, gpu::FitKernels, init_params, loss_grad_f64, FitConfig, FitTarget, DEFAULT_IRRADIANCE_TOLERANCE};
 use pii_bake::testing::{assert_close, Tolerance};
 use rand::Rng;
 
@@ -148,11 +148,13 @@ fn wgsl_gradient_matches_cpu() {
     let (w, h) = (64, 32);
     let rgb: Vec<f32> = (0..w * h * 3).map(|_| rng.random_range(0.0f32..1.0).powi(3) * 50.0).collect();
     let target = FitTarget::from_map(&rgb, w, h, LatlongConvention::OpenExrUsd, 64);
-    for lobes in [1usize, 5, 13] {
+    // (lobes, range of ln λ): the last case puts λ on both sides of the energy term's series
+    // branch (0.05 in WGSL, 1e-3 in the cpu twin).
+    for (lobes, ln_lambda) in [(1usize, 0.0f32..4.0), (5, 0.0..4.0), (13, 0.0..4.0), (4, -8.0..-1.5)] {
         let params: Vec<f32> = (0..lobes * 7)
             .map(|i| match i % 7 {
                 0..=2 => rng.random_range(-1.0f32..1.0),
-                3 => rng.random_range(0.0f32..4.0),
+                3 => rng.random_range(ln_lambda.clone()),
                 _ => rng.random_range(-2.0f32..2.0),
             })
             .collect();
@@ -203,6 +205,61 @@ fn one_lobe_fit_finds_the_axis_in_both_conventions() {
     }
 }
 
+fn sun_map(w: usize, h: usize, sun: (usize, usize)) -> Vec<f32> {
+    // A sky graded from 0.5 (zenith) to 0.05 (nadir) and a 2x2-pixel sun of 2e4: the sun holds
+    // most of the energy in a few pixels, the case the log loss alone gets wrong.
+    let mut rgb = vec![0.0f32; w * h * 3];
+    for y in 0..h {
+        let v = 0.5 - 0.45 * y as f32 / h as f32;
+        for x in 0..w {
+            rgb[(y * w + x) * 3..(y * w + x) * 3 + 3].copy_from_slice(&[v * 0.8, v * 0.9, v]);
+        }
+    }
+    for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+        let i = ((sun.1 + dy) * w + sun.0 + dx) * 3;
+        rgb[i..i + 3].copy_from_slice(&[2e4, 1.8e4, 1.5e4]);
+    }
+    rgb
+}
+
+#[test]
+fn sun_map_fit_keeps_energy_and_irradiance() {
+    let (w, h) = (256, 128);
+    let conv = LatlongConvention::Blender;
+    let rgb = sun_map(w, h, (170, 40));
+    let target = FitTarget::from_map(&rgb, w, h, conv, 64);
+    let cfg = FitConfig { lobes: 8, iterations: 150, ..FitConfig::default() };
+    let r = fit_sgs(&Backend::cpu(), &target, &cfg, |_| {}).unwrap();
+    let err = fit_error(&r.env, &rgb, w, h, conv);
+    eprintln!("sun map, K = 8: {err:?}");
+    assert!((err.energy_ratio - 1.0).abs() < 0.05, "energy ratio {}", err.energy_ratio);
+    assert!(err.irradiance_error < DEFAULT_IRRADIANCE_TOLERANCE, "irradiance error {}", err.irradiance_error);
+    // The brightest lobe sits on the sun (within one fit pixel, 5.6 deg at width 64).
+    let sun = pii_bake::sg::env::latlong_dir(conv, 171, 41, w, h);
+    let bright = r.env.lobes.iter().max_by(|a, b| a.amplitude[0].total_cmp(&b.amplitude[0])).unwrap();
+    let deg = bright.axis.iter().zip(&sun).map(|(a, b)| a * b).sum::<f32>().clamp(-1.0, 1.0).acos().to_degrees();
+    assert!(deg < 5.6, "brightest lobe {deg} deg from the sun");
+}
+
+#[test]
+fn irradiance_error_measures_scale_and_rotation() {
+    let (w, h) = (128, 64);
+    let conv = LatlongConvention::OpenExrUsd;
+    let env = known_env();
+    let rgb = render_latlong(&env, w, h, conv);
+    let same = fit_error(&env, &rgb, w, h, conv);
+    assert!(same.irradiance_error < 1e-5 && (same.energy_ratio - 1.0).abs() < 1e-5, "{same:?}");
+    // 10% brighter everywhere: irradiance 10% off at every normal.
+    let brighter = EnvSgs { lobes: env.lobes.iter().map(|l| SgLobe { amplitude: l.amplitude.map(|a| a * 1.1), ..*l }).collect() };
+    let e = fit_error(&brighter, &rgb, w, h, conv);
+    assert!((e.irradiance_error - 0.1).abs() < 1e-4 && (e.energy_ratio - 1.1).abs() < 1e-4, "{e:?}");
+    // The same lobes mirrored through the origin: same energy, irradiance far off.
+    let mirrored = EnvSgs { lobes: env.lobes.iter().map(|l| SgLobe { axis: l.axis.map(|a| -a), ..*l }).collect() };
+    let e = fit_error(&mirrored, &rgb, w, h, conv);
+    assert!((e.energy_ratio - 1.0).abs() < 1e-3 && e.irradiance_error > 0.5, "{e:?}");
+}
+
+#[test]
 #[test]
 fn init_is_deterministic_given_a_seed() {
     let rgb = render_latlong(&known_env(), 64, 32, LatlongConvention::OpenExrUsd);
@@ -240,12 +297,20 @@ fn fit_env_cli_writes_every_output() {
     assert_eq!(rep["iterations"], 30);
     assert_eq!(rep["backend"], "cpu");
     assert!(rep["relative_l2"].as_f64().unwrap().is_finite());
+    assert!(rep["irradiance_error"].as_f64().unwrap().is_finite() && rep["energy_weight"].as_f64() == Some(pii_bake::sg::fit::DEFAULT_ENERGY_WEIGHT));
     let sg = EnvSgs::read_json(&out.join("env_sg.json")).unwrap();
     assert_eq!(sg.lobes.len(), 4);
     let exr = read_latlong_exr(&out.join("env_fit.exr")).unwrap();
     assert_eq!((exr.width, exr.height), (64, 32));
     let png = pii_bake::image_io::read_image_linear(&out.join("env_compare.png")).unwrap();
     assert_eq!((png.width, png.height), (3 * 64, 32));
+
+    // Bad numbers are refused before any work, naming the flag.
+    for (flag, v) in [("--energy-weight", "-1"), ("--irradiance-tolerance", "0"), ("--tolerance", "nan")] {
+        let st = cmd().args(["fit-env", &format!("{flag}={v}"), "--out"]).arg(&out).arg(&map).output().unwrap();
+        assert_eq!(st.status.code(), Some(1), "{flag} {v}");
+        assert!(String::from_utf8_lossy(&st.stderr).contains(flag), "{}", String::from_utf8_lossy(&st.stderr));
+    }
 
     // Missing and corrupt inputs: exit 1, one line naming the file.
     for bad in ["missing.exr", "corrupt.exr"] {
@@ -263,10 +328,10 @@ fn fit_env_cli_writes_every_output() {
 fn fit_env_auto_reports_every_rung() {
     let dir = tempfile::tempdir().unwrap();
     let map = small_map(dir.path(), "map.exr");
-    // A tolerance no fit meets: every rung is tried, the largest is kept and flagged.
+    // An irradiance tolerance no fit meets: every rung is tried, the largest is kept and flagged.
     let out = dir.path().join("strict");
     let st = cmd()
-        .args(["--json", "fit-env", "--lobes", "auto", "--tolerance", "1e-9", "--iterations", "10", "--fit-width", "32", "--out"])
+        .args(["--json", "fit-env", "--lobes", "auto", "--tolerance", "100", "--irradiance-tolerance", "1e-9", "--iterations", "10", "--fit-width", "32", "--out"])
         .arg(&out)
         .arg(&map)
         .output()
@@ -278,9 +343,15 @@ fn fit_env_auto_reports_every_rung() {
     let rep = json(&out.join("fit_report.json"));
     assert_eq!((rep["lobes"].as_u64(), rep["tolerance_met"].as_bool()), (Some(128), Some(false)));
     assert_eq!(rep["rungs"].as_array().unwrap().len(), 5);
-    // A loose tolerance: the first rung meets it and the ladder stops there.
+    assert!(rep["rungs"][0]["irradiance_error"].as_f64().unwrap() > 1e-9);
+    // Loose tolerances: the first rung meets them and the ladder stops there.
     let out = dir.path().join("loose");
-    let st = cmd().args(["fit-env", "--tolerance", "100", "--iterations", "10", "--fit-width", "32", "--out"]).arg(&out).arg(&map).output().unwrap();
+    let st = cmd()
+        .args(["fit-env", "--tolerance", "100", "--irradiance-tolerance", "100", "--iterations", "10", "--fit-width", "32", "--out"])
+        .arg(&out)
+        .arg(&map)
+        .output()
+        .unwrap();
     assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
     let rep = json(&out.join("fit_report.json"));
     assert_eq!((rep["lobes"].as_u64(), rep["tolerance_met"].as_bool()), (Some(8), Some(true)));

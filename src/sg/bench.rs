@@ -9,7 +9,7 @@ use anyhow::Context as _;
 
 use crate::cli::Context;
 use crate::sg::env::{read_latlong_exr, LatlongConvention};
-use crate::sg::fit::{auto_choice, fit_ladder, FitConfig, Rung, DEFAULT_TOLERANCE, LOBE_LADDER};
+use crate::sg::fit::{auto_choice, fit_ladder, AutoTolerance, FitConfig, Rung, DEFAULT_IRRADIANCE_TOLERANCE, DEFAULT_TOLERANCE, LOBE_LADDER};
 use crate::util::atomic_write;
 
 /// Adam iterations per fit in the bench (fit-env's default is larger; see `FitConfig`).
@@ -35,6 +35,12 @@ pub struct BenchEnvArgs {
     /// Tolerance `auto` uses (relative log-space L2 of the full-res re-render, see fit-env).
     #[arg(long, default_value_t = DEFAULT_TOLERANCE)]
     pub tolerance: f64,
+    /// Irradiance tolerance `auto` uses (see fit-env).
+    #[arg(long, default_value_t = DEFAULT_IRRADIANCE_TOLERANCE)]
+    pub irradiance_tolerance: f64,
+    /// Weight of the fit loss's energy term (see fit-env).
+    #[arg(long, default_value_t = FitConfig::default().energy_weight)]
+    pub energy_weight: f64,
     /// Latlong layout of the maps (the shipped maps are Blender's).
     #[arg(long, value_enum, default_value_t = LatlongConvention::Blender)]
     pub convention: LatlongConvention,
@@ -49,6 +55,7 @@ pub struct BenchRow {
     pub relative_l2: f64,
     pub relative_log_l2: f64,
     pub energy_ratio: f64,
+    pub irradiance_error: f64,
     pub fit_seconds: f64,
     pub iterations: usize,
     pub backend: String,
@@ -86,7 +93,7 @@ pub fn run(args: &BenchEnvArgs, ctx: &Context) -> anyhow::Result<()> {
         anyhow::bail!("--lobes must list positive counts");
     }
     let backend = ctx.backend()?;
-    let base = FitConfig { lobes: 0, iterations: args.iterations, fit_width: args.fit_width, ..FitConfig::default() };
+    let base = FitConfig { lobes: 0, iterations: args.iterations, fit_width: args.fit_width, energy_weight: args.energy_weight, ..FitConfig::default() };
     let pb = ctx.progress((files.len() * args.lobes.len()) as u64, "bench env");
     let mut rows = Vec::new();
     for f in &files {
@@ -99,7 +106,7 @@ pub fn run(args: &BenchEnvArgs, ctx: &Context) -> anyhow::Result<()> {
             map.height,
             args.convention,
             &args.lobes,
-            args.tolerance,
+            &AutoTolerance { log_l2: args.tolerance, irradiance: args.irradiance_tolerance },
             &base,
             false,
             |_| pb.inc(1),
@@ -115,6 +122,7 @@ pub fn run(args: &BenchEnvArgs, ctx: &Context) -> anyhow::Result<()> {
                 relative_l2: r.relative_l2,
                 relative_log_l2: r.relative_log_l2,
                 energy_ratio: r.energy_ratio,
+                irradiance_error: r.irradiance_error,
                 fit_seconds: r.fit_seconds,
                 iterations: r.iterations,
                 backend: backend.name().to_string(),
@@ -136,8 +144,10 @@ pub fn run(args: &BenchEnvArgs, ctx: &Context) -> anyhow::Result<()> {
         "iterations": args.iterations,
         "fit_width": args.fit_width,
         "tolerance": args.tolerance,
+        "irradiance_tolerance": args.irradiance_tolerance,
+        "energy_weight": args.energy_weight,
         "convention": args.convention,
-        "error": "relative_l2: solid-angle-weighted relative L2 of the full-resolution re-render; relative_log_l2: the same on log1p(radiance), which auto_lobes uses; energy_ratio: solid-angle-integrated radiance of the fit over the map's",
+        "error": "relative_l2: solid-angle-weighted relative L2 of the full-resolution re-render; relative_log_l2: the same on log1p(radiance), which auto_lobes uses; energy_ratio: solid-angle-integrated radiance of the fit over the map's; irradiance_error: relative L2 over all normals of the diffuse irradiance (SH order 2) of the fit against the map's",
         "rows": rows,
     });
     atomic_write(&json, serde_json::to_string_pretty(&doc)?.as_bytes())?;
@@ -148,22 +158,22 @@ pub fn run(args: &BenchEnvArgs, ctx: &Context) -> anyhow::Result<()> {
 }
 
 pub fn to_csv(rows: &[BenchRow]) -> String {
-    let mut s = String::from("map,width,height,lobes,relative_l2,relative_log_l2,energy_ratio,fit_seconds,iterations,backend,auto_lobes\n");
+    let mut s = String::from("map,width,height,lobes,relative_l2,relative_log_l2,energy_ratio,irradiance_error,fit_seconds,iterations,backend,auto_lobes\n");
     for r in rows {
         s += &format!(
-            "{},{},{},{},{:.6},{:.6},{:.4},{:.4},{},{},{}\n",
-            r.map, r.width, r.height, r.lobes, r.relative_l2, r.relative_log_l2, r.energy_ratio, r.fit_seconds, r.iterations, r.backend, r.auto_lobes
+            "{},{},{},{},{:.6},{:.6},{:.4},{:.4},{:.4},{},{},{}\n",
+            r.map, r.width, r.height, r.lobes, r.relative_l2, r.relative_log_l2, r.energy_ratio, r.irradiance_error, r.fit_seconds, r.iterations, r.backend, r.auto_lobes
         );
     }
     s
 }
 
 fn table(rows: &[BenchRow]) -> String {
-    let mut s = format!("{:<34} {:>4} {:>10} {:>10} {:>8} {:>8} {:>5}\n", "map", "K", "rel L2", "log L2", "energy", "time s", "auto");
+    let mut s = format!("{:<34} {:>4} {:>10} {:>10} {:>8} {:>8} {:>8} {:>5}\n", "map", "K", "rel L2", "log L2", "energy", "irr err", "time s", "auto");
     for r in rows {
         s += &format!(
-            "{:<34} {:>4} {:>10.4} {:>10.4} {:>8.3} {:>8.2} {:>5}\n",
-            r.map, r.lobes, r.relative_l2, r.relative_log_l2, r.energy_ratio, r.fit_seconds, r.auto_lobes
+            "{:<34} {:>4} {:>10.4} {:>10.4} {:>8.3} {:>8.4} {:>8.2} {:>5}\n",
+            r.map, r.lobes, r.relative_l2, r.relative_log_l2, r.energy_ratio, r.irradiance_error, r.fit_seconds, r.auto_lobes
         );
     }
     s

@@ -7,19 +7,22 @@ use anyhow::Context as _;
 
 use crate::cli::Context;
 use crate::sg::env::{read_latlong_exr, render_latlong, write_latlong_exr, LatlongConvention};
-use crate::sg::fit::{auto_choice, fit_ladder, FitConfig, FitTarget, Rung, DEFAULT_TOLERANCE, LOBE_LADDER};
+use crate::sg::fit::{auto_choice, fit_ladder, AutoTolerance, FitConfig, FitTarget, Rung, DEFAULT_IRRADIANCE_TOLERANCE, DEFAULT_TOLERANCE, LOBE_LADDER};
 use crate::util::atomic_write;
 
 #[derive(Debug, clap::Args)]
 pub struct FitEnvArgs {
     /// Latlong HDR environment map (.exr, 2:1).
     pub map: PathBuf,
-    /// Lobe count, or `auto`: the smallest of 8, 16, 32, 64, 128 whose relative log-space error is within --tolerance.
+    /// Lobe count, or `auto`: the smallest of 8, 16, 32, 64, 128 whose relative log-space error is within --tolerance and whose diffuse-irradiance error is within --irradiance-tolerance.
     #[arg(long, default_value = "auto")]
     pub lobes: String,
     /// `--lobes auto` tolerance on the solid-angle-weighted relative L2 error of log1p(radiance) of the full-res re-render (relative_log_l2).
     #[arg(long, default_value_t = DEFAULT_TOLERANCE)]
     pub tolerance: f64,
+    /// `--lobes auto` tolerance on the relative L2 error, over all normals, of the diffuse irradiance the fit casts (irradiance_error).
+    #[arg(long, default_value_t = DEFAULT_IRRADIANCE_TOLERANCE)]
+    pub irradiance_tolerance: f64,
     /// Adam iterations per fit.
     #[arg(long, default_value_t = FitConfig::default().iterations)]
     pub iterations: usize,
@@ -29,6 +32,9 @@ pub struct FitEnvArgs {
     /// Width of the area-averaged map the loss sees (height = width / 2).
     #[arg(long, default_value_t = FitConfig::default().fit_width)]
     pub fit_width: usize,
+    /// Weight of the loss's energy term (keeps the map's mean radiance; 0 turns it off).
+    #[arg(long, default_value_t = FitConfig::default().energy_weight)]
+    pub energy_weight: f64,
     /// Seed of the λ initialisation.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -53,8 +59,14 @@ pub fn parse_lobes(s: &str) -> anyhow::Result<Option<usize>> {
 
 pub fn run(args: &FitEnvArgs, ctx: &Context) -> anyhow::Result<()> {
     let fixed = parse_lobes(&args.lobes)?;
-    if !(args.tolerance.is_finite() && args.tolerance > 0.0) {
-        anyhow::bail!("--tolerance must be > 0, got {}", args.tolerance);
+    for (flag, v) in [("--tolerance", args.tolerance), ("--irradiance-tolerance", args.irradiance_tolerance)] {
+        if !(v.is_finite() && v > 0.0) {
+            anyhow::bail!("{flag} must be > 0, got {v}");
+        }
+    }
+    let tolerance = AutoTolerance { log_l2: args.tolerance, irradiance: args.irradiance_tolerance };
+    if !(args.energy_weight.is_finite() && args.energy_weight >= 0.0) {
+        anyhow::bail!("--energy-weight must be >= 0, got {}", args.energy_weight);
     }
     if args.iterations == 0 || args.fit_width < 4 {
         anyhow::bail!("--iterations must be > 0 and --fit-width >= 4");
@@ -68,7 +80,7 @@ pub fn run(args: &FitEnvArgs, ctx: &Context) -> anyhow::Result<()> {
         Some(k) => vec![k],
         None => LOBE_LADDER.to_vec(),
     };
-    let base = FitConfig { lobes: 0, iterations: args.iterations, lr: args.lr, seed: args.seed, fit_width: args.fit_width };
+    let base = FitConfig { lobes: 0, iterations: args.iterations, lr: args.lr, seed: args.seed, fit_width: args.fit_width, energy_weight: args.energy_weight };
     ctx.say(format!(
         "fit-env: {} ({}x{}, {:?}) on {}, lobes {}",
         args.map.display(),
@@ -86,16 +98,18 @@ pub fn run(args: &FitEnvArgs, ctx: &Context) -> anyhow::Result<()> {
         map.height,
         args.convention,
         &ladder,
-        args.tolerance,
+        &tolerance,
         &base,
         fixed.is_none(),
         |r| {
             ctx.emit("rung", serde_json::to_value(r).unwrap_or_default());
             ctx.say(format!(
-                "  K = {:>3}: relative L2 {:.4}, log L2 {:.4}, {:.2} s{}",
+                "  K = {:>3}: relative L2 {:.4}, log L2 {:.4}, irradiance {:.4}, energy {:.3}, {:.2} s{}",
                 r.lobes,
                 r.relative_l2,
                 r.relative_log_l2,
+                r.irradiance_error,
+                r.energy_ratio,
                 r.fit_seconds,
                 if r.within_tolerance { " (within tolerance)" } else { "" }
             ));
@@ -153,7 +167,8 @@ fn write_outputs(
         "lobes_arg": args.lobes,
         "lobes": chosen.lobes,
         "tolerance": args.tolerance,
-        "tolerance_on": "relative_log_l2",
+        "irradiance_tolerance": args.irradiance_tolerance,
+        "tolerance_on": "relative_log_l2 <= tolerance and irradiance_error <= irradiance_tolerance",
         "tolerance_met": chosen.within_tolerance,
         "auto_note": if parse_lobes(&args.lobes).ok().flatten().is_none() && !auto_ok {
             "no rung met the tolerance: the largest K was kept"
@@ -161,10 +176,12 @@ fn write_outputs(
         "relative_l2": chosen.relative_l2,
         "relative_log_l2": chosen.relative_log_l2,
         "energy_ratio": chosen.energy_ratio,
+        "irradiance_error": chosen.irradiance_error,
         "iterations": chosen.iterations,
         "fit_seconds": chosen.fit_seconds,
         "total_seconds": rungs.iter().map(|r| r.fit_seconds).sum::<f64>(),
-        "loss": "solid-angle-weighted L2 of log1p(radiance), per channel, on the area-averaged map",
+        "loss": "solid-angle-weighted L2 of log1p(radiance), per channel, on the area-averaged map, + energy_weight * squared log ratio of the fit's mean radiance (closed form) to the map's",
+        "energy_weight": args.energy_weight,
         "fit_width": args.fit_width,
         "lr": args.lr,
         "seed": args.seed,
@@ -174,10 +191,11 @@ fn write_outputs(
     atomic_write(&report, serde_json::to_string_pretty(&doc)?.as_bytes())?;
     ctx.emit("fit_env", doc);
     ctx.say(format!(
-        "chose K = {} (relative L2 {:.4}, log L2 {:.4}, energy kept {:.3}{}); wrote {}, {}, {}, {}",
+        "chose K = {} (relative L2 {:.4}, log L2 {:.4}, irradiance {:.4}, energy kept {:.3}{}); wrote {}, {}, {}, {}",
         chosen.lobes,
         chosen.relative_l2,
         chosen.relative_log_l2,
+        chosen.irradiance_error,
         chosen.energy_ratio,
         if chosen.within_tolerance { "" } else { ", tolerance not met" },
         sg_json.display(),

@@ -10,6 +10,11 @@
 //! `L = Σ_p w_p Σ_c (log1p(f_pc) − log1p(t_pc))² / 3`. Plain L2 on radiance lets the sun (up to
 //! 3e4) dominate and leaves the rest of the sky black; log1p is L2 for dim pixels and relative
 //! for bright ones.
+//! Plus an energy term `β Σ_c (ln(E_c + ε) − ln(T_c + ε))² / 3`, with `E_c = Σ_k μ_kc S(λ_k)` the
+//! fit's solid-angle mean radiance in closed form (`S(λ) = (1 − e^{−2λ}) / 2λ`) and `T_c` the map's.
+//! The log loss alone keeps too little energy on maps whose light is in a few bright pixels (a sun
+//! or softboxes a fit-grid pixel averages away): it saturates there while the sky dominates the
+//! pixel count. Diffuse relighting sees exactly that energy, so it gets its own term.
 
 use rayon::prelude::*;
 use serde::Serialize;
@@ -23,10 +28,53 @@ pub const PARAMS_PER_LOBE: usize = 7;
 /// The `--lobes auto` ladder.
 pub const LOBE_LADDER: [usize; 5] = [8, 16, 32, 64, 128];
 /// Default tolerance of `--lobes auto` on the relative log-space error (`relative_log_l2`) of the
-/// full-res re-render. The auto choice uses the log-space error because the radiance-space relative
-/// L2 of a map with a sun is dominated by a few pixels no K ≤ 128 resolves (sunset.exr: 0.99 at
-/// K = 32 while the sky matches to 0.16 in log space), so it would pick 128 for every outdoor map.
-pub const DEFAULT_TOLERANCE: f64 = 0.25;
+/// full-res re-render: a bound on how the sky looks, beside the irradiance bound below that decides
+/// relighting. Log space because the radiance-space relative L2 of a map with a sun is dominated by
+/// a few pixels no K ≤ 128 resolves (sunset.exr: 0.99 at every K while the sky matches to 0.15 in
+/// log space). 0.5, not tighter: the dim, detailed maps (night, forest, envmap6) stay above 0.45
+/// even at K = 128 (bench env), so a tighter default would make `auto` mean "always 128".
+pub const DEFAULT_TOLERANCE: f64 = 0.5;
+/// Default tolerance of `--lobes auto` on the relative diffuse-irradiance error
+/// (`irradiance_error`, see [`FitError`]): what a Lambertian asset relit by the fit sees.
+pub const DEFAULT_IRRADIANCE_TOLERANCE: f64 = 0.05;
+
+/// What `--lobes auto` requires of a rung: both errors within their tolerances.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct AutoTolerance {
+    /// On `relative_log_l2`.
+    pub log_l2: f64,
+    /// On `irradiance_error`.
+    pub irradiance: f64,
+}
+
+impl Default for AutoTolerance {
+    fn default() -> Self {
+        Self { log_l2: DEFAULT_TOLERANCE, irradiance: DEFAULT_IRRADIANCE_TOLERANCE }
+    }
+}
+
+impl AutoTolerance {
+    pub fn accepts(&self, e: &FitError) -> bool {
+        e.relative_log_l2 <= self.log_l2 && e.irradiance_error <= self.irradiance
+    }
+}
+/// Default weight β of the energy term.
+pub const DEFAULT_ENERGY_WEIGHT: f64 = 0.5;
+/// ε of the energy term (mean radiance; keeps a black channel finite).
+pub const ENERGY_EPS: f64 = 1e-6;
+
+/// Solid-angle mean over the sphere of a unit-amplitude SG with sharpness `λ`,
+/// `S(λ) = (1 − e^{−2λ}) / 2λ`, and `dS/dλ` (series below λ = 1e-3).
+pub fn sg_mean_factor(lambda: f64) -> (f64, f64) {
+    if lambda < 1e-3 {
+        let l = lambda;
+        (1.0 - l + 2.0 * l * l / 3.0 - l * l * l / 3.0, -1.0 + 4.0 * l / 3.0 - l * l)
+    } else {
+        let e = (-2.0 * lambda).exp();
+        let s = -(-2.0 * lambda).exp_m1() / (2.0 * lambda);
+        (s, (2.0 * lambda * e - (1.0 - e)) / (2.0 * lambda * lambda))
+    }
+}
 
 /// What a fit needs beyond the map.
 #[derive(Clone, Debug, Serialize)]
@@ -38,11 +86,13 @@ pub struct FitConfig {
     pub seed: u64,
     /// Width of the downsampled map the loss sees (height = width / 2).
     pub fit_width: usize,
+    /// Weight β of the loss's energy term (0: log loss only).
+    pub energy_weight: f64,
 }
 
 impl Default for FitConfig {
     fn default() -> Self {
-        Self { lobes: 32, iterations: 300, lr: 0.05, seed: 0, fit_width: 128 }
+        Self { lobes: 32, iterations: 300, lr: 0.05, seed: 0, fit_width: 128, energy_weight: DEFAULT_ENERGY_WEIGHT }
     }
 }
 
@@ -54,6 +104,10 @@ pub struct FitTarget {
     pub rgb: Vec<f32>,
     /// Per pixel `[dx, dy, dz, weight]` (weights sum to 1).
     pub dir_weight: Vec<[f32; 4]>,
+    /// Solid-angle mean radiance per channel of the full-resolution map (the energy term's target).
+    pub mean: [f64; 3],
+    /// Weight β of the energy term (0 turns it off).
+    pub energy_weight: f64,
 }
 
 /// Solid-angle weight of latlong row `y` (sin θ at the row centre).
@@ -89,6 +143,18 @@ impl FitTarget {
                 }
             }
         });
+        let mut mean = [0.0f64; 3];
+        let mut wsum = 0.0f64;
+        for y in 0..height {
+            let w = row_weight(y, height);
+            for x in 0..width {
+                for c in 0..3 {
+                    mean[c] += w * (rgb[(y * width + x) * 3 + c] as f64).max(0.0);
+                }
+            }
+            wsum += w * width as f64;
+        }
+        let mean = mean.map(|m| m / wsum.max(1e-30));
         let total: f64 = (0..fh).map(|y| row_weight(y, fh) * fw as f64).sum();
         let mut dir_weight = Vec::with_capacity(fw * fh);
         for y in 0..fh {
@@ -98,7 +164,13 @@ impl FitTarget {
                 dir_weight.push([d[0], d[1], d[2], w]);
             }
         }
-        Self { width: fw, height: fh, rgb: out, dir_weight }
+        Self { width: fw, height: fh, rgb: out, dir_weight, mean, energy_weight: DEFAULT_ENERGY_WEIGHT }
+    }
+
+    /// The same target with energy-term weight `beta`.
+    pub fn with_energy_weight(mut self, beta: f64) -> Self {
+        self.energy_weight = beta;
+        self
     }
 
     /// Nearest pixel value of the target in direction `d`.
@@ -155,38 +227,104 @@ pub fn env_to_params(env: &EnvSgs) -> Vec<f32> {
         .collect()
 }
 
-/// The paper's initialisation, deterministic given `seed`: Fibonacci axes,
-/// λ = 10 + |20·N(0,1)|, μ = the map at the axis, then scaled per channel so the
-/// solid-angle mean of the SG render matches the map's.
+/// Share of the lobes the peak seeding may take.
+pub const PEAK_LOBE_SHARE: usize = 4;
+/// A pixel seeds a peak lobe when its residual luminance exceeds this multiple of the map's mean.
+pub const PEAK_THRESHOLD: f64 = 16.0;
+
+/// Deterministic initialisation given `seed`, in two parts.
+/// 1. Peak seeding: up to K/4 lobes go, one at a time, to the brightest pixel of the residual
+///    (map minus the lobes placed so far) while it is brighter than 4× the map's mean luminance:
+///    axis there, λ = 2π ln 2 / A from the solid angle A of the nearby pixels above half that peak
+///    (an SG's half-maximum cap has that area), clamped to [5, what one fit pixel resolves], and
+///    the amplitude that gives the lobe those pixels' radiant energy. Suns, lamps and softboxes get a lobe of their size from the
+///    start; gradient descent rarely moves a broad lobe onto a one-pixel light.
+/// 2. The paper's initialisation for the rest: Fibonacci axes, λ = 10 + |20·N(0,1)|, μ = the
+///    residual at the axis, scaled per channel so that the whole fit's solid-angle mean matches
+///    the map's.
 pub fn init_params(target: &FitTarget, lobes: usize, seed: u64) -> Vec<f32> {
     use rand_distr::{Distribution, StandardNormal};
+    let n = target.dir_weight.len();
+    let lum = |v: &[f32]| (v[0] + v[1] + v[2]) as f64 / 3.0;
+    let mean_lum = (target.mean[0] + target.mean[1] + target.mean[2]) / 3.0;
+    let mut resid: Vec<f32> = target.rgb.iter().map(|v| v.max(0.0)).collect();
+    let mut lobes_out: Vec<SgLobe> = Vec::with_capacity(lobes);
+    let max_peaks = if lobes >= 2 { (lobes / PEAK_LOBE_SHARE).max(1) } else { 0 };
+    // Solid angle of a fit pixel: weights sum to 1 over the sphere.
+    let omega = |i: usize| 4.0 * std::f64::consts::PI * target.dir_weight[i][3] as f64;
+    for _ in 0..max_peaks {
+        let (best, peak) = (0..n).map(|i| (i, lum(&resid[i * 3..i * 3 + 3]))).fold((0, f64::MIN), |a, b| if b.1 > a.1 { b } else { a });
+        if !(peak > PEAK_THRESHOLD * mean_lum && peak > 0.0) {
+            break;
+        }
+        let d = target.dir_weight[best];
+        let axis = [d[0], d[1], d[2]];
+        // The pixels within 0.5 rad (cos > 0.8775) above half the peak: their solid angle A and energy.
+        let region: Vec<usize> = (0..n)
+            .filter(|&i| {
+                let p = target.dir_weight[i];
+                p[0] * axis[0] + p[1] * axis[1] + p[2] * axis[2] > 0.8775 && lum(&resid[i * 3..i * 3 + 3]) >= 0.5 * peak
+            })
+            .collect();
+        let area: f64 = region.iter().map(|&i| omega(i)).sum();
+        let mut energy = [0.0f64; 3];
+        for &i in &region {
+            for c in 0..3 {
+                energy[c] += omega(i) * resid[i * 3 + c] as f64;
+            }
+        }
+        let ln2_2pi = 2.0 * std::f64::consts::PI * std::f64::consts::LN_2;
+        let lambda_max = ln2_2pi / omega(best).max(1e-12);
+        let lambda = (ln2_2pi / area.max(1e-12)).clamp(5.0_f64.min(lambda_max), lambda_max);
+        // The amplitude that gives the lobe the region's energy (∫ SG = 4π μ S(λ)).
+        let per_mu = 4.0 * std::f64::consts::PI * sg_mean_factor(lambda).0;
+        let amp = energy.map(|e| ((e / per_mu) as f32).max(1e-4));
+        let lobe = SgLobe { axis, sharpness: lambda as f32, amplitude: amp };
+        // The lobe takes its region's energy; elsewhere it takes what it renders.
+        resid.par_chunks_mut(3).zip(&target.dir_weight).for_each(|(r, p)| {
+            let f = lobe.eval([p[0], p[1], p[2]]);
+            for c in 0..3 {
+                r[c] = (r[c] - f[c]).max(0.0);
+            }
+        });
+        for &i in &region {
+            resid[i * 3..i * 3 + 3].fill(0.0);
+        }
+        lobes_out.push(lobe);
+    }
+    let peaks = EnvSgs { lobes: lobes_out.clone() };
+    let resid_target = FitTarget { rgb: resid, ..target.clone() };
     let mut rng = crate::util::rng(seed);
-    let axes = fibonacci_sphere(lobes);
-    let mut env = EnvSgs {
-        lobes: axes
+    let mut background = EnvSgs {
+        lobes: fibonacci_sphere(lobes - lobes_out.len())
             .iter()
             .map(|&a| {
                 let z: f64 = StandardNormal.sample(&mut rng);
-                let t = target.lookup(a);
+                let t = resid_target.lookup(a);
                 SgLobe { axis: a, sharpness: (10.0 + (20.0 * z).abs()) as f32, amplitude: t.map(|v| v.max(1e-4)) }
             })
             .collect(),
     };
-    let mut mean_map = [0.0f64; 3];
-    let mut mean_fit = [0.0f64; 3];
-    for (i, p) in target.dir_weight.iter().enumerate() {
-        let f = env.eval([p[0], p[1], p[2]]);
+    // Scale the background so that peaks + background keep the map's mean radiance (per channel).
+    let mean_of = |env: &EnvSgs| {
+        let mut m = [0.0f64; 3];
+        for l in &env.lobes {
+            let s = sg_mean_factor(l.sharpness as f64).0;
+            for c in 0..3 {
+                m[c] += l.amplitude[c] as f64 * s;
+            }
+        }
+        m
+    };
+    let (mp, mb) = (mean_of(&peaks), mean_of(&background));
+    for l in &mut background.lobes {
         for c in 0..3 {
-            mean_map[c] += p[3] as f64 * target.rgb[i * 3 + c].max(0.0) as f64;
-            mean_fit[c] += p[3] as f64 * f[c] as f64;
+            let want = (target.mean[c] - mp[c]).max(0.05 * target.mean[c]).max(1e-6);
+            l.amplitude[c] *= (want / mb[c].max(1e-12)) as f32;
         }
     }
-    for l in &mut env.lobes {
-        for c in 0..3 {
-            l.amplitude[c] *= (mean_map[c].max(1e-6) / mean_fit[c].max(1e-12)) as f32;
-        }
-    }
-    env_to_params(&env)
+    lobes_out.extend(background.lobes);
+    env_to_params(&EnvSgs { lobes: lobes_out })
 }
 
 /// Loss and its gradient w.r.t. the raw parameters, cpu reference in f64.
@@ -268,6 +406,31 @@ pub fn loss_grad_f64(params: &[f64], target: &FitTarget) -> (f64, Vec<f64>) {
             grad[o + 4 + c] = acc[o + 4 + c] * l.mu[c];
         }
     }
+    let beta = target.energy_weight;
+    if beta > 0.0 {
+        let sk: Vec<(f64, f64)> = lobes.iter().map(|l| sg_mean_factor(l.lambda)).collect();
+        let mut e = [0.0f64; 3];
+        for (l, s) in lobes.iter().zip(&sk) {
+            for c in 0..3 {
+                e[c] += l.mu[c] * s.0;
+            }
+        }
+        let mut q = [0.0f64; 3];
+        let mut loss_e = 0.0;
+        for c in 0..3 {
+            let r = (e[c] + ENERGY_EPS).ln() - (target.mean[c] + ENERGY_EPS).ln();
+            loss_e += beta * r * r / 3.0;
+            q[c] = 2.0 * beta * r / (3.0 * (e[c] + ENERGY_EPS));
+        }
+        for (j, (l, s)) in lobes.iter().zip(&sk).enumerate() {
+            let o = j * PARAMS_PER_LOBE;
+            for c in 0..3 {
+                grad[o + 4 + c] += q[c] * s.0 * l.mu[c];
+                grad[o + 3] += q[c] * l.mu[c] * s.1 * l.lambda;
+            }
+        }
+        return (loss + loss_e, grad);
+    }
     (loss, grad)
 }
 
@@ -284,19 +447,55 @@ pub struct FitError {
     /// sqrt(Σ w‖log1p f − log1p t‖² / Σ w‖log1p t‖²): how the dim sky is matched.
     pub relative_log_l2: f64,
     /// Σ w f / Σ w t over pixels and channels: the fraction of the map's radiant energy the fit
-    /// keeps (what diffuse relighting sees; 1 is right).
+    /// keeps (1 is right).
     pub energy_ratio: f64,
+    /// Relative L2 over all normals of the diffuse irradiance E(n) = ∫ L(ω) max(0, n·ω) dω of the
+    /// fit against the map's, both from their order-2 spherical-harmonic projections
+    /// (Ramamoorthi & Hanrahan 2001; exact for the cosine kernel up to ~3%): what a Lambertian
+    /// asset relit by the fit sees.
+    pub irradiance_error: f64,
+}
+
+/// The 9 real SH basis functions (l ≤ 2) at unit direction `d`.
+fn sh9(d: [f32; 3]) -> [f64; 9] {
+    let (x, y, z) = (d[0] as f64, d[1] as f64, d[2] as f64);
+    [
+        0.282_094_791_773_878_1,
+        0.488_602_511_902_919_9 * y,
+        0.488_602_511_902_919_9 * z,
+        0.488_602_511_902_919_9 * x,
+        1.092_548_430_592_079_2 * x * y,
+        1.092_548_430_592_079_2 * y * z,
+        0.315_391_565_252_520_05 * (3.0 * z * z - 1.0),
+        1.092_548_430_592_079_2 * x * z,
+        0.546_274_215_296_039_6 * (x * x - y * y),
+    ]
+}
+
+/// Cosine-lobe convolution factors Â_l for SH bands 0, 1, 2 of the 9 coefficients.
+fn cosine_band(i: usize) -> f64 {
+    use std::f64::consts::PI;
+    match i {
+        0 => PI,
+        1..=3 => 2.0 * PI / 3.0,
+        _ => PI / 4.0,
+    }
 }
 
 /// Render `env` at the map's resolution and compare (negative map values count as 0).
 pub fn fit_error(env: &EnvSgs, rgb: &[f32], width: usize, height: usize, conv: LatlongConvention) -> FitError {
-    let (n1, d1, n2, d2, e_fit, e_map) = (0..height)
+    // Accumulators: 6 sums (see below), then 27 SH coefficients of the map and 27 of the fit.
+    const N: usize = 6 + 54;
+    let dphi_dtheta = 2.0 * std::f64::consts::PI / width as f64 * std::f64::consts::PI / height as f64;
+    let s = (0..height)
         .into_par_iter()
         .map(|y| {
             let w = row_weight(y, height);
-            let mut s = [0.0f64; 6];
+            let mut s = [0.0f64; N];
             for x in 0..width {
-                let f = env.eval(latlong_dir(conv, x, y, width, height));
+                let d = latlong_dir(conv, x, y, width, height);
+                let f = env.eval(d);
+                let sh = sh9(d);
                 for c in 0..3 {
                     let t = (rgb[(y * width + x) * 3 + c] as f64).max(0.0);
                     let fv = f[c] as f64;
@@ -307,18 +506,37 @@ pub fn fit_error(env: &EnvSgs, rgb: &[f32], width: usize, height: usize, conv: L
                     s[3] += w * lt * lt;
                     s[4] += w * fv;
                     s[5] += w * t;
+                    for (i, b) in sh.iter().enumerate() {
+                        s[6 + c * 9 + i] += w * dphi_dtheta * t * b;
+                        s[33 + c * 9 + i] += w * dphi_dtheta * fv * b;
+                    }
                 }
             }
-            (s[0], s[1], s[2], s[3], s[4], s[5])
+            s
         })
         .reduce(
-            || (0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
-            |a, b| (a.0 + b.0, a.1 + b.1, a.2 + b.2, a.3 + b.3, a.4 + b.4, a.5 + b.5),
+            || [0.0; N],
+            |mut a, b| {
+                for (x, y) in a.iter_mut().zip(&b) {
+                    *x += y;
+                }
+                a
+            },
         );
+    let (mut num, mut den) = (0.0f64, 0.0f64);
+    for c in 0..3 {
+        for i in 0..9 {
+            let a2 = cosine_band(i).powi(2);
+            let (t, f) = (s[6 + c * 9 + i], s[33 + c * 9 + i]);
+            num += a2 * (f - t) * (f - t);
+            den += a2 * t * t;
+        }
+    }
     FitError {
-        relative_l2: (n1 / d1.max(1e-30)).sqrt(),
-        relative_log_l2: (n2 / d2.max(1e-30)).sqrt(),
-        energy_ratio: e_fit / e_map.max(1e-30),
+        relative_l2: (s[0] / s[1].max(1e-30)).sqrt(),
+        relative_log_l2: (s[2] / s[3].max(1e-30)).sqrt(),
+        energy_ratio: s[4] / s[5].max(1e-30),
+        irradiance_error: (num / den.max(1e-30)).sqrt(),
     }
 }
 
@@ -401,10 +619,65 @@ mod tests {
         let (w, h) = (16, 8);
         let rgb: Vec<f32> = (0..w * h * 3).map(|i| ((i * 37 % 101) as f32 / 25.0).powi(2)).collect();
         let t = FitTarget::from_map(&rgb, w, h, LatlongConvention::OpenExrUsd, 16);
-        let params: Vec<f64> =
-            vec![0.3, 0.9, -0.2, 1.5, 0.1, -0.5, 0.7, -0.8, 0.1, 0.7, 2.2, 1.0, 0.2, -1.0, 0.2, -0.6, -1.1, 0.8, -0.3, 0.0, 0.4];
-        let (_, g) = loss_grad_f64(&params, &t);
-        check_grad("fit loss", &params, &g, 1e-6, Tolerance::new(1e-5, 1e-8), |p| loss_f64(p, &t));
+        // The 4th lobe's λ = e^-8 takes the series branch of the energy term.
+        let params: Vec<f64> = vec![
+            0.3, 0.9, -0.2, 1.5, 0.1, -0.5, 0.7, -0.8, 0.1, 0.7, 2.2, 1.0, 0.2, -1.0, 0.2, -0.6, -1.1, 0.8, -0.3, 0.0, 0.4, 0.1, 0.2, 0.9,
+            -8.0, -1.0, -2.0, -1.5,
+        ];
+        for beta in [0.0, DEFAULT_ENERGY_WEIGHT, 3.0] {
+            let t = t.clone().with_energy_weight(beta);
+            let (_, g) = loss_grad_f64(&params, &t);
+            check_grad(&format!("fit loss, energy weight {beta}"), &params, &g, 1e-6, Tolerance::new(1e-5, 1e-8), |p| loss_f64(p, &t));
+        }
+    }
+
+    #[test]
+    fn sg_mean_factor_matches_quadrature_and_its_derivative() {
+        // ∫ e^{λ(cos θ − 1)} dω / 4π = ½ ∫_{-1}^{1} e^{λ(u − 1)} du, by Simpson's rule on 20001 nodes.
+        let quad = |lambda: f64| {
+            let n = 20_000;
+            let h = 2.0 / n as f64;
+            let f = |u: f64| (lambda * (u - 1.0)).exp();
+            let mut s = f(-1.0) + f(1.0);
+            for i in 1..n {
+                s += f(-1.0 + i as f64 * h) * if i % 2 == 1 { 4.0 } else { 2.0 };
+            }
+            0.5 * s * h / 3.0
+        };
+        for lambda in [1e-6, 5e-4, 0.999e-3, 1.001e-3, 0.03, 0.05, 1.0, 37.0, 500.0] {
+            let (s, ds) = sg_mean_factor(lambda);
+            assert!((s - quad(lambda)).abs() < 1e-7 * s, "S({lambda}) = {s} vs {}", quad(lambda));
+            let h = 1e-6 * lambda.max(1e-3);
+            let fd = (sg_mean_factor(lambda + h).0 - sg_mean_factor(lambda - h).0) / (2.0 * h);
+            assert!((ds - fd).abs() < 1e-6 * ds.abs().max(1e-6), "dS({lambda}) = {ds} vs {fd}");
+        }
+        // Large λ: S → 1/2λ, finite.
+        let (s, ds) = sg_mean_factor(1e4);
+        assert!((s * 2e4 - 1.0).abs() < 1e-12 && ds.is_finite() && ds < 0.0);
+    }
+
+    #[test]
+    fn peak_seeding_puts_the_first_lobe_on_the_sun() {
+        // A dim sky with a one-pixel sun (1e4) at a known pixel of a 128x64 map.
+        let (w, h) = (128, 64);
+        let mut rgb = vec![0.2f32; w * h * 3];
+        let (sx, sy) = (37, 20);
+        rgb[(sy * w + sx) * 3..(sy * w + sx) * 3 + 3].copy_from_slice(&[1e4, 9e3, 8e3]);
+        let t = FitTarget::from_map(&rgb, w, h, LatlongConvention::OpenExrUsd, 128);
+        let env = params_to_env(&init_params(&t, 8, 0));
+        let sun = latlong_dir(LatlongConvention::OpenExrUsd, sx, sy, w, h);
+        let first = env.lobes[0];
+        let cos = first.axis.iter().zip(&sun).map(|(a, b)| a * b).sum::<f32>();
+        assert!(cos > 0.9999, "first lobe axis {:?} vs sun {sun:?}", first.axis);
+        // Its λ is what one fit pixel resolves, and it carries the sun's energy.
+        let sun_energy = 1e4 * 4.0 * std::f64::consts::PI * t.dir_weight[sy * w + sx][3] as f64;
+        let lobe_energy = first.amplitude[0] as f64 * 4.0 * std::f64::consts::PI * sg_mean_factor(first.sharpness as f64).0;
+        assert!((lobe_energy / sun_energy - 1.0).abs() < 1e-3, "lobe {lobe_energy} vs sun {sun_energy}");
+        // Only the sun is a peak: the other lobes are the Fibonacci background, and the whole
+        // initialisation keeps the map's mean radiance.
+        assert!(env.lobes[1..].iter().all(|l| l.amplitude[0] < 10.0), "{:?}", env.lobes);
+        let mean: f64 = env.lobes.iter().map(|l| l.amplitude[0] as f64 * sg_mean_factor(l.sharpness as f64).0).sum();
+        assert!((mean / t.mean[0] - 1.0).abs() < 0.05, "init mean {mean} vs map {}", t.mean[0]);
     }
 }
 
@@ -429,8 +702,11 @@ pub mod gpu {
         pub n_lobes: u32,
         pub n_chunks: u32,
         pub chunk: u32,
+        /// The map's mean radiance (energy term target) and the term's weight β.
+        pub mean: [f32; 3],
+        pub energy_weight: f32,
     }
-    const _: () = assert!(std::mem::size_of::<SgFitParams>() == 16);
+    const _: () = assert!(std::mem::size_of::<SgFitParams>() == 32);
 
     /// Buffers for one target and lobe count, reused every iteration.
     pub struct FitKernels {
@@ -455,7 +731,14 @@ pub mod gpu {
             let dw: Vec<f32> = target.dir_weight.iter().flatten().copied().collect();
             Ok(Self {
                 ctx: ctx.clone(),
-                p: SgFitParams { n_pixels: n as u32, n_lobes: lobes as u32, n_chunks: n_chunks as u32, chunk: CHUNK },
+                p: SgFitParams {
+                    n_pixels: n as u32,
+                    n_lobes: lobes as u32,
+                    n_chunks: n_chunks as u32,
+                    chunk: CHUNK,
+                    mean: target.mean.map(|m| m as f32),
+                    energy_weight: target.energy_weight as f32,
+                },
                 target: ctx.upload_f32("sg_fit target", &target.rgb),
                 dir_weight: ctx.upload_f32("sg_fit dirs", &dw),
                 resid: ctx.zeros_f32("sg_fit resid", n * 4),
@@ -522,6 +805,8 @@ pub struct Rung {
     pub relative_log_l2: f64,
     /// Radiant energy of the fit over that of the map (see [`FitError::energy_ratio`]).
     pub energy_ratio: f64,
+    /// Relative L2 of the diffuse irradiance (see [`FitError::irradiance_error`]).
+    pub irradiance_error: f64,
     pub final_loss: f64,
     pub iterations: usize,
     pub skipped_steps: usize,
@@ -531,7 +816,7 @@ pub struct Rung {
     pub env: EnvSgs,
 }
 
-/// Fit every K of `ladder` in order (stopping at the first within `tolerance` when
+/// Fit every K of `ladder` in order (stopping at the first `tolerance` accepts when
 /// `stop_when_within`). `on_step(k, i)` is called after every Adam iteration.
 #[allow(clippy::too_many_arguments)]
 pub fn fit_ladder(
@@ -541,13 +826,13 @@ pub fn fit_ladder(
     height: usize,
     conv: LatlongConvention,
     ladder: &[usize],
-    tolerance: f64,
+    tolerance: &AutoTolerance,
     base: &FitConfig,
     stop_when_within: bool,
     mut on_rung: impl FnMut(&Rung),
     mut on_step: impl FnMut(usize, usize),
 ) -> Result<Vec<Rung>, BackendError> {
-    let target = FitTarget::from_map(rgb, width, height, conv, base.fit_width);
+    let target = FitTarget::from_map(rgb, width, height, conv, base.fit_width).with_energy_weight(base.energy_weight);
     let mut rungs = Vec::new();
     for &k in ladder {
         let cfg = FitConfig { lobes: k, ..base.clone() };
@@ -558,11 +843,12 @@ pub fn fit_ladder(
             relative_l2: err.relative_l2,
             relative_log_l2: err.relative_log_l2,
             energy_ratio: err.energy_ratio,
+            irradiance_error: err.irradiance_error,
             final_loss: r.final_loss,
             iterations: r.iterations,
             skipped_steps: r.skipped_steps,
             fit_seconds: r.seconds,
-            within_tolerance: err.relative_log_l2 <= tolerance,
+            within_tolerance: tolerance.accepts(&err),
             env: r.env,
         };
         on_rung(&rung);
