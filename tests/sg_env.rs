@@ -383,6 +383,8 @@ fn bench_env_writes_csv_json_and_chart() {
     assert_eq!(rep["rows"].as_array().unwrap().len(), 4);
     let svg = std::fs::read_to_string(out.join("bench-env.svg")).unwrap();
     assert!(svg.starts_with("<svg") && svg.contains("<text") && svg.contains("sub/b") && svg.contains("fit time (s)"), "{svg}");
+    let svg = std::fs::read_to_string(out.join("bench-env-irradiance.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.contains("irradiance") && svg.contains("sub/b"), "{svg}");
     let stdout = String::from_utf8_lossy(&st.stdout);
     assert!(stdout.contains("rel L2") && stdout.contains("sub/b"), "{stdout}");
 }

@@ -1,7 +1,8 @@
 //! The `bench env` command: for every latlong .exr under a folder, fit each K of a lobe ladder
-//! and record the relative L2 error of the full-res re-render, the fit time and the K that
-//! `fit-env --lobes auto` would choose. Writes CSV + JSON atomically and an SVG chart of fit
-//! error (relative log-space L2, log y) against fit time, one series per map, one point per K; prints the table.
+//! and record the errors of the full-res re-render (relative L2, log-space L2, energy kept,
+//! diffuse-irradiance error), the fit time and the K that `fit-env --lobes auto` would choose.
+//! Writes CSV + JSON atomically and two SVG charts, log-space error and irradiance error (log y)
+//! against fit time, one series per map, one point per K; prints the table.
 
 use std::path::{Path, PathBuf};
 
@@ -20,7 +21,7 @@ pub struct BenchEnvArgs {
     /// Folder searched (recursively) for .exr maps. Default: $PII_SHARED_DATA/envmaps, else ../shared/data/envmaps.
     #[arg(long)]
     pub maps: Option<PathBuf>,
-    /// Output folder for bench-env.csv, bench-env.json and bench-env.svg.
+    /// Output folder for bench-env.csv, bench-env.json, bench-env.svg (log-space error vs time) and bench-env-irradiance.svg.
     #[arg(long, default_value = "bench-env")]
     pub out: PathBuf,
     /// Lobe counts, comma separated.
@@ -137,6 +138,7 @@ pub fn run(args: &BenchEnvArgs, ctx: &Context) -> anyhow::Result<()> {
     let csv = args.out.join("bench-env.csv");
     let json = args.out.join("bench-env.json");
     let svg = args.out.join("bench-env.svg");
+    let svg_irr = args.out.join("bench-env-irradiance.svg");
     atomic_write(&csv, to_csv(&rows).as_bytes())?;
     let doc = serde_json::json!({
         "maps": dir.display().to_string(),
@@ -151,9 +153,10 @@ pub fn run(args: &BenchEnvArgs, ctx: &Context) -> anyhow::Result<()> {
         "rows": rows,
     });
     atomic_write(&json, serde_json::to_string_pretty(&doc)?.as_bytes())?;
-    atomic_write(&svg, chart_svg(&rows)?.as_bytes())?;
+    atomic_write(&svg, chart_svg(&rows, ChartMetric::LogL2)?.as_bytes())?;
+    atomic_write(&svg_irr, chart_svg(&rows, ChartMetric::Irradiance)?.as_bytes())?;
     ctx.say(table(&rows));
-    ctx.say(format!("wrote {}, {}, {}", csv.display(), json.display(), svg.display()));
+    ctx.say(format!("wrote {}, {}, {}, {}", csv.display(), json.display(), svg.display(), svg_irr.display()));
     Ok(())
 }
 
@@ -179,15 +182,39 @@ fn table(rows: &[BenchRow]) -> String {
     s
 }
 
-/// Fit error (relative log-space L2, the metric `auto` uses; log y) against fit time, one series
+/// The error a chart plots.
+#[derive(Clone, Copy, Debug)]
+pub enum ChartMetric {
+    /// `relative_log_l2`: how the sky looks.
+    LogL2,
+    /// `irradiance_error`: what a diffuse asset relit by the fit sees.
+    Irradiance,
+}
+
+impl ChartMetric {
+    fn of(self, r: &BenchRow) -> f64 {
+        match self {
+            ChartMetric::LogL2 => r.relative_log_l2,
+            ChartMetric::Irradiance => r.irradiance_error,
+        }
+    }
+    fn label(self) -> &'static str {
+        match self {
+            ChartMetric::LogL2 => "relative log-space L2 error",
+            ChartMetric::Irradiance => "relative diffuse-irradiance error",
+        }
+    }
+}
+
+/// Fit error (`metric`, one of the two `auto` bounds; log y) against fit time, one series
 /// per map. Plotters' SVG backend writes `<text>` elements: no system fonts are needed.
-pub fn chart_svg(rows: &[BenchRow]) -> anyhow::Result<String> {
+pub fn chart_svg(rows: &[BenchRow], metric: ChartMetric) -> anyhow::Result<String> {
     use plotters::prelude::*;
     let mut maps: Vec<&str> = rows.iter().map(|r| r.map.as_str()).collect();
     maps.dedup();
     let tmax = rows.iter().map(|r| r.fit_seconds).fold(0.0, f64::max).max(1e-3) * 1.05;
-    let emin = rows.iter().map(|r| r.relative_log_l2).fold(f64::INFINITY, f64::min).max(1e-6) * 0.8;
-    let emax = rows.iter().map(|r| r.relative_log_l2).fold(0.0, f64::max).max(emin * 2.0) * 1.25;
+    let emin = rows.iter().map(|r| metric.of(r)).fold(f64::INFINITY, f64::min).max(1e-6) * 0.8;
+    let emax = rows.iter().map(|r| metric.of(r)).fold(0.0, f64::max).max(emin * 2.0) * 1.25;
     let mut svg = String::new();
     {
         let root = SVGBackend::with_string(&mut svg, (900, 600)).into_drawing_area();
@@ -202,14 +229,14 @@ pub fn chart_svg(rows: &[BenchRow]) -> anyhow::Result<String> {
         chart
             .configure_mesh()
             .x_desc("fit time (s)")
-            .y_desc("relative log-space L2 error")
+            .y_desc(metric.label())
             .y_label_formatter(&|v| format!("{v:.3}"))
             .x_label_formatter(&|v| format!("{v:.1}"))
             .draw()
             .map_err(|err| anyhow::anyhow!("chart: {err}"))?;
         for (i, m) in maps.iter().enumerate() {
             let color = Palette99::pick(i).to_rgba();
-            let pts: Vec<(f64, f64)> = rows.iter().filter(|r| r.map == *m).map(|r| (r.fit_seconds, r.relative_log_l2)).collect();
+            let pts: Vec<(f64, f64)> = rows.iter().filter(|r| r.map == *m).map(|r| (r.fit_seconds, metric.of(r))).collect();
             chart
                 .draw_series(LineSeries::new(pts.clone(), color.stroke_width(1)))
                 .map_err(|err| anyhow::anyhow!("chart: {err}"))?
