@@ -71,6 +71,11 @@ fn fit_mean() -> vec3<f32> {
     return e;
 }
 
+// The energy term's residual ln(E_c + eps) - ln(T_c + eps) for the fit's mean radiance e.
+fn energy_log_ratio(e: vec3<f32>) -> vec3<f32> {
+    return log(e + ENERGY_EPS) - log(vec3<f32>(params.mean_r, params.mean_g, params.mean_b) + ENERGY_EPS);
+}
+
 @compute @workgroup_size(64)
 fn residual(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let i = linear_index(gid, nwg, 64u);
@@ -130,7 +135,7 @@ fn reduce(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
             loss += resid[p].w;
         }
         if (params.energy_weight > 0.0) {
-            let r = log(fit_mean() + ENERGY_EPS) - log(vec3<f32>(params.mean_r, params.mean_g, params.mean_b) + ENERGY_EPS);
+            let r = energy_log_ratio(fit_mean());
             loss += params.energy_weight * dot(r, r) / 3.0;
         }
         loss_out[0] = loss;
@@ -146,7 +151,7 @@ fn reduce(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups
     let l = lobe(k);
     if (params.energy_weight > 0.0) {
         let e = fit_mean();
-        let r = log(e + ENERGY_EPS) - log(vec3<f32>(params.mean_r, params.mean_g, params.mean_b) + ENERGY_EPS);
+        let r = energy_log_ratio(e);
         let q = 2.0 * params.energy_weight * r / (3.0 * (e + ENERGY_EPS));
         let sf = sg_mean_factor(l.lambda);
         // s[3], s[4..6] are multiplied by lambda and mu below.

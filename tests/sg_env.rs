@@ -387,6 +387,10 @@ fn bench_env_writes_csv_json_and_chart() {
     assert!(svg.starts_with("<svg") && svg.contains("irradiance") && svg.contains("sub/b"), "{svg}");
     let stdout = String::from_utf8_lossy(&st.stdout);
     assert!(stdout.contains("rel L2") && stdout.contains("sub/b"), "{stdout}");
+    // The flags fit-env checks are checked here too, before any fit.
+    let st = cmd().args(["bench", "env", "--energy-weight=-1", "--maps"]).arg(&maps).arg("--out").arg(&out).output().unwrap();
+    assert_eq!(st.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&st.stderr).contains("--energy-weight"), "{}", String::from_utf8_lossy(&st.stderr));
 }
 
 #[test]

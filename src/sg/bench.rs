@@ -93,8 +93,10 @@ pub fn run(args: &BenchEnvArgs, ctx: &Context) -> anyhow::Result<()> {
     if args.lobes.is_empty() || args.lobes.contains(&0) {
         anyhow::bail!("--lobes must list positive counts");
     }
-    let backend = ctx.backend()?;
     let base = FitConfig { lobes: 0, iterations: args.iterations, fit_width: args.fit_width, energy_weight: args.energy_weight, ..FitConfig::default() };
+    let tolerance = AutoTolerance { log_l2: args.tolerance, irradiance: args.irradiance_tolerance };
+    crate::sg::cli::check_fit_flags(&tolerance, &base)?;
+    let backend = ctx.backend()?;
     let pb = ctx.progress((files.len() * args.lobes.len()) as u64, "bench env");
     let mut rows = Vec::new();
     for f in &files {
@@ -107,7 +109,7 @@ pub fn run(args: &BenchEnvArgs, ctx: &Context) -> anyhow::Result<()> {
             map.height,
             args.convention,
             &args.lobes,
-            &AutoTolerance { log_l2: args.tolerance, irradiance: args.irradiance_tolerance },
+            &tolerance,
             &base,
             false,
             |_| pb.inc(1),

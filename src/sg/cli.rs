@@ -57,20 +57,27 @@ pub fn parse_lobes(s: &str) -> anyhow::Result<Option<usize>> {
     }
 }
 
-pub fn run(args: &FitEnvArgs, ctx: &Context) -> anyhow::Result<()> {
-    let fixed = parse_lobes(&args.lobes)?;
-    for (flag, v) in [("--tolerance", args.tolerance), ("--irradiance-tolerance", args.irradiance_tolerance)] {
+/// The numeric flags `fit-env` and `bench env` share, checked before any work.
+pub fn check_fit_flags(tolerance: &AutoTolerance, cfg: &FitConfig) -> anyhow::Result<()> {
+    for (flag, v) in [("--tolerance", tolerance.log_l2), ("--irradiance-tolerance", tolerance.irradiance)] {
         if !(v.is_finite() && v > 0.0) {
             anyhow::bail!("{flag} must be > 0, got {v}");
         }
     }
-    let tolerance = AutoTolerance { log_l2: args.tolerance, irradiance: args.irradiance_tolerance };
-    if !(args.energy_weight.is_finite() && args.energy_weight >= 0.0) {
-        anyhow::bail!("--energy-weight must be >= 0, got {}", args.energy_weight);
+    if !(cfg.energy_weight.is_finite() && cfg.energy_weight >= 0.0) {
+        anyhow::bail!("--energy-weight must be >= 0, got {}", cfg.energy_weight);
     }
-    if args.iterations == 0 || args.fit_width < 4 {
+    if cfg.iterations == 0 || cfg.fit_width < 4 {
         anyhow::bail!("--iterations must be > 0 and --fit-width >= 4");
     }
+    Ok(())
+}
+
+pub fn run(args: &FitEnvArgs, ctx: &Context) -> anyhow::Result<()> {
+    let fixed = parse_lobes(&args.lobes)?;
+    let tolerance = AutoTolerance { log_l2: args.tolerance, irradiance: args.irradiance_tolerance };
+    let base = FitConfig { lobes: 0, iterations: args.iterations, lr: args.lr, seed: args.seed, fit_width: args.fit_width, energy_weight: args.energy_weight };
+    check_fit_flags(&tolerance, &base)?;
     let map = read_latlong_exr(&args.map)?;
     if map.clamped_negatives > 0 {
         tracing::warn!("{}: clamped {} negative values (min {}) to 0", args.map.display(), map.clamped_negatives, map.min_value);
@@ -80,7 +87,6 @@ pub fn run(args: &FitEnvArgs, ctx: &Context) -> anyhow::Result<()> {
         Some(k) => vec![k],
         None => LOBE_LADDER.to_vec(),
     };
-    let base = FitConfig { lobes: 0, iterations: args.iterations, lr: args.lr, seed: args.seed, fit_width: args.fit_width, energy_weight: args.energy_weight };
     ctx.say(format!(
         "fit-env: {} ({}x{}, {:?}) on {}, lobes {}",
         args.map.display(),

@@ -47,12 +47,6 @@ pub struct AutoTolerance {
     pub irradiance: f64,
 }
 
-impl Default for AutoTolerance {
-    fn default() -> Self {
-        Self { log_l2: DEFAULT_TOLERANCE, irradiance: DEFAULT_IRRADIANCE_TOLERANCE }
-    }
-}
-
 impl AutoTolerance {
     pub fn accepts(&self, e: &FitError) -> bool {
         e.relative_log_l2 <= self.log_l2 && e.irradiance_error <= self.irradiance
@@ -173,8 +167,8 @@ impl FitTarget {
         self
     }
 
-    /// Nearest pixel value of the target in direction `d`.
-    fn lookup(&self, d: [f32; 3]) -> [f32; 3] {
+    /// Index of the target pixel nearest to direction `d`.
+    fn nearest(&self, d: [f32; 3]) -> usize {
         let mut best = (f32::MIN, 0);
         for (i, p) in self.dir_weight.iter().enumerate() {
             let dot = p[0] * d[0] + p[1] * d[1] + p[2] * d[2];
@@ -182,8 +176,7 @@ impl FitTarget {
                 best = (dot, i);
             }
         }
-        let i = best.1 * 3;
-        [self.rgb[i], self.rgb[i + 1], self.rgb[i + 2]]
+        best.1
     }
 }
 
@@ -227,18 +220,20 @@ pub fn env_to_params(env: &EnvSgs) -> Vec<f32> {
         .collect()
 }
 
-/// Share of the lobes the peak seeding may take.
+/// Share of the lobes the peak seeding may take (K / this).
 pub const PEAK_LOBE_SHARE: usize = 4;
 /// A pixel seeds a peak lobe when its residual luminance exceeds this multiple of the map's mean.
 pub const PEAK_THRESHOLD: f64 = 16.0;
 
 /// Deterministic initialisation given `seed`, in two parts.
 /// 1. Peak seeding: up to K/4 lobes go, one at a time, to the brightest pixel of the residual
-///    (map minus the lobes placed so far) while it is brighter than 4× the map's mean luminance:
+///    (map minus the lobes placed so far) while it is brighter than [`PEAK_THRESHOLD`] (16) × the
+///    map's mean luminance:
 ///    axis there, λ = 2π ln 2 / A from the solid angle A of the nearby pixels above half that peak
 ///    (an SG's half-maximum cap has that area), clamped to [5, what one fit pixel resolves], and
-///    the amplitude that gives the lobe those pixels' radiant energy. Suns, lamps and softboxes get a lobe of their size from the
-///    start; gradient descent rarely moves a broad lobe onto a one-pixel light.
+///    the amplitude that gives the lobe those pixels' radiant energy. Suns, lamps and softboxes get
+///    a lobe of their size from the start; gradient descent rarely moves a broad lobe onto a
+///    one-pixel light.
 /// 2. The paper's initialisation for the rest: Fibonacci axes, λ = 10 + |20·N(0,1)|, μ = the
 ///    residual at the axis, scaled per channel so that the whole fit's solid-angle mean matches
 ///    the map's.
@@ -292,23 +287,20 @@ pub fn init_params(target: &FitTarget, lobes: usize, seed: u64) -> Vec<f32> {
         }
         lobes_out.push(lobe);
     }
-    let peaks = EnvSgs { lobes: lobes_out.clone() };
-    let resid_target = FitTarget { rgb: resid, ..target.clone() };
     let mut rng = crate::util::rng(seed);
-    let mut background = EnvSgs {
-        lobes: fibonacci_sphere(lobes - lobes_out.len())
-            .iter()
-            .map(|&a| {
-                let z: f64 = StandardNormal.sample(&mut rng);
-                let t = resid_target.lookup(a);
-                SgLobe { axis: a, sharpness: (10.0 + (20.0 * z).abs()) as f32, amplitude: t.map(|v| v.max(1e-4)) }
-            })
-            .collect(),
-    };
+    let mut background: Vec<SgLobe> = fibonacci_sphere(lobes - lobes_out.len())
+        .iter()
+        .map(|&a| {
+            let z: f64 = StandardNormal.sample(&mut rng);
+            let i = target.nearest(a) * 3;
+            let amplitude = [resid[i], resid[i + 1], resid[i + 2]].map(|v| v.max(1e-4));
+            SgLobe { axis: a, sharpness: (10.0 + (20.0 * z).abs()) as f32, amplitude }
+        })
+        .collect();
     // Scale the background so that peaks + background keep the map's mean radiance (per channel).
-    let mean_of = |env: &EnvSgs| {
+    let mean_of = |lobes: &[SgLobe]| {
         let mut m = [0.0f64; 3];
-        for l in &env.lobes {
+        for l in lobes {
             let s = sg_mean_factor(l.sharpness as f64).0;
             for c in 0..3 {
                 m[c] += l.amplitude[c] as f64 * s;
@@ -316,14 +308,14 @@ pub fn init_params(target: &FitTarget, lobes: usize, seed: u64) -> Vec<f32> {
         }
         m
     };
-    let (mp, mb) = (mean_of(&peaks), mean_of(&background));
-    for l in &mut background.lobes {
+    let (mp, mb) = (mean_of(&lobes_out), mean_of(&background));
+    for l in &mut background {
         for c in 0..3 {
             let want = (target.mean[c] - mp[c]).max(0.05 * target.mean[c]).max(1e-6);
             l.amplitude[c] *= (want / mb[c].max(1e-12)) as f32;
         }
     }
-    lobes_out.extend(background.lobes);
+    lobes_out.extend(background);
     env_to_params(&EnvSgs { lobes: lobes_out })
 }
 
@@ -406,6 +398,7 @@ pub fn loss_grad_f64(params: &[f64], target: &FitTarget) -> (f64, Vec<f64>) {
             grad[o + 4 + c] = acc[o + 4 + c] * l.mu[c];
         }
     }
+    let mut loss = loss;
     let beta = target.energy_weight;
     if beta > 0.0 {
         let sk: Vec<(f64, f64)> = lobes.iter().map(|l| sg_mean_factor(l.lambda)).collect();
@@ -416,10 +409,9 @@ pub fn loss_grad_f64(params: &[f64], target: &FitTarget) -> (f64, Vec<f64>) {
             }
         }
         let mut q = [0.0f64; 3];
-        let mut loss_e = 0.0;
         for c in 0..3 {
             let r = (e[c] + ENERGY_EPS).ln() - (target.mean[c] + ENERGY_EPS).ln();
-            loss_e += beta * r * r / 3.0;
+            loss += beta * r * r / 3.0;
             q[c] = 2.0 * beta * r / (3.0 * (e[c] + ENERGY_EPS));
         }
         for (j, (l, s)) in lobes.iter().zip(&sk).enumerate() {
@@ -429,7 +421,6 @@ pub fn loss_grad_f64(params: &[f64], target: &FitTarget) -> (f64, Vec<f64>) {
                 grad[o + 3] += q[c] * l.mu[c] * s.1 * l.lambda;
             }
         }
-        return (loss + loss_e, grad);
     }
     (loss, grad)
 }
