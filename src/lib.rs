@@ -6,6 +6,7 @@
 pub mod backend;
 pub mod bake;
 pub mod cli;
+pub mod context;
 pub mod eval;
 pub mod image_io;
 pub mod export;

@@ -2,12 +2,12 @@
 //! Each subcommand's arguments and `run` live in the module that owns the work
 //! (`scene::cli`, `sg::cli`, `export::cli`, ...); this file only wires them.
 
-use std::io::Write;
 use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
-use crate::backend::{Backend, BackendChoice};
+use crate::backend::BackendChoice;
+pub use crate::context::Context;
 
 pub mod devices;
 
@@ -49,10 +49,12 @@ pub enum Command {
     Eval(crate::eval::cli::EvalArgs),
     /// Fit K spherical Gaussians to an HDR latlong environment map.
     FitEnv(crate::sg::cli::FitEnvArgs),
-    /// Photos → asset (.glb/.usda/.exr). Today a preview bake: visual-hull geometry and photo
-    /// colour; the inverse-rendering training stages are not implemented yet.
+    /// Photos → asset (.glb/.usda/.exr): trains stage 1 (geometry) and exports it; `--preset
+    /// preview` ships the visual hull without training.
     Bake(crate::train::preview::BakeArgs),
-    /// Export an asset (mesh, UVs, baked textures, glTF/USD/EXR) from a field.
+    /// Train a stage of the inverse-rendering model into a run folder (checkpoints, resume).
+    Train(crate::train::cli::TrainArgs),
+    /// Export an asset (mesh, UVs, baked textures, glTF/USD/EXR) from a trained run or an analytic field.
     Export(crate::export::cli::ExportArgs),
     /// Benchmarks: write figures (JSON/CSV) and charts.
     #[command(subcommand)]
@@ -67,69 +69,6 @@ pub enum BenchCommand {
     Env(crate::sg::bench::BenchEnvArgs),
     /// Asset back end timings (grid, marching cubes, simplify, unwrap, bake).
     Export(crate::export::bench::BenchExportArgs),
-}
-
-/// What every command receives: the resolved global options. Holds no clap types.
-#[derive(Debug, Clone)]
-pub struct Context {
-    pub backend_choice: BackendChoice,
-    pub adapter: Option<String>,
-    pub json: bool,
-    pub quiet: bool,
-}
-
-impl Context {
-    pub fn from_global(g: &GlobalArgs) -> Self {
-        Self { backend_choice: g.backend, adapter: g.adapter.clone(), json: g.json, quiet: g.quiet }
-    }
-
-    /// Create the compute backend the user asked for.
-    pub fn backend(&self) -> anyhow::Result<Backend> {
-        let b = Backend::select(self.backend_choice, self.adapter.as_deref())?;
-        tracing::info!("backend: {}", b.describe());
-        Ok(b)
-    }
-
-    /// Emit one JSON Lines record (only with `--json`). `kind` becomes the `type` field.
-    pub fn emit(&self, kind: &str, value: serde_json::Value) {
-        if !self.json {
-            return;
-        }
-        let mut obj = match value {
-            serde_json::Value::Object(m) => m,
-            other => {
-                let mut m = serde_json::Map::new();
-                m.insert("value".into(), other);
-                m
-            }
-        };
-        obj.insert("type".into(), serde_json::Value::String(kind.into()));
-        let mut out = std::io::stdout().lock();
-        let _ = writeln!(out, "{}", serde_json::Value::Object(obj));
-    }
-
-    /// Print a human-readable line on stdout unless `--json` or `--quiet`.
-    pub fn say(&self, line: impl AsRef<str>) {
-        if !self.json && !self.quiet {
-            println!("{}", line.as_ref());
-        }
-    }
-
-    /// A progress bar drawn only on a terminal and never with `--json`/`--quiet`.
-    pub fn progress(&self, len: u64, what: &str) -> indicatif::ProgressBar {
-        use std::io::IsTerminal;
-        if self.json || self.quiet || !std::io::stderr().is_terminal() {
-            return indicatif::ProgressBar::hidden();
-        }
-        let pb = indicatif::ProgressBar::new(len);
-        pb.set_style(
-            indicatif::ProgressStyle::with_template("{msg:>12} [{bar:40}] {pos}/{len} {elapsed_precise} eta {eta}")
-                .expect("static template")
-                .progress_chars("=> "),
-        );
-        pb.set_message(what.to_string());
-        pb
-    }
 }
 
 fn init_logging(g: &GlobalArgs) {
@@ -167,7 +106,8 @@ pub fn main() -> ExitCode {
     if std::env::var_os("XDG_RUNTIME_DIR").is_none() {
         std::env::set_var("XDG_RUNTIME_DIR", std::env::temp_dir());
     }
-    let ctx = Context::from_global(&cli.global);
+    let g = &cli.global;
+    let ctx = Context { backend_choice: g.backend, adapter: g.adapter.clone(), json: g.json, quiet: g.quiet };
     match run(&cli.command, &ctx) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
@@ -185,6 +125,7 @@ pub fn run(cmd: &Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Eval(a) => crate::eval::cli::run(a, ctx),
         Command::FitEnv(a) => crate::sg::cli::run(a, ctx),
         Command::Bake(a) => crate::train::preview::run(a, ctx),
+        Command::Train(a) => crate::train::cli::run(a, ctx),
         Command::Export(a) => crate::export::cli::run(a, ctx),
         Command::Bench(BenchCommand::Nn(a)) => crate::nn::bench::run(a, ctx),
         Command::Bench(BenchCommand::Env(a)) => crate::sg::bench::run(a, ctx),

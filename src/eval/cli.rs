@@ -26,7 +26,7 @@ use serde_json::{json, Value};
 
 use super::mesh::{compare_meshes, Mesh};
 use super::{apply_scale, env_error, ls_scale_rgb, psnr_srgb, resample_latlong, ssim_srgb, weighted_mse};
-use crate::cli::Context;
+use crate::context::Context;
 use crate::image_io::{read_image_linear, read_mask, ImageF32};
 use crate::util::{atomic_write, DataError};
 

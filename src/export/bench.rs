@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use crate::cli::Context;
+use crate::context::Context;
 use crate::mesh::field::{AnalyticMaterial, AnalyticSdf, AnalyticShape};
 use crate::mesh::{self, MeshConfig};
 

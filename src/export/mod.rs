@@ -60,6 +60,34 @@ impl std::str::FromStr for TextureSize {
     }
 }
 
+/// The asset flags every command that writes an asset shares (`bake`, `export`), one meaning each.
+#[derive(Clone, Debug, clap::Args)]
+pub struct AssetArgs {
+    /// Output folder for the asset.
+    #[arg(long)]
+    pub out: std::path::PathBuf,
+    /// Marching grid nodes along the longest side of the object's box (default: chosen from the
+    /// source: the photos' pixel footprint for a trained or preview bake, 256 for an analytic field).
+    #[arg(long)]
+    pub resolution: Option<usize>,
+    /// Simplification error bound, in normalised scene units (the unit sphere the object is scaled
+    /// into) (default: half a marching cell; a preview bake uses one hull voxel).
+    #[arg(long)]
+    pub error_bound: Option<f32>,
+    /// Texture size: `auto` (from surface area and the detail the source holds) or a power of two.
+    #[arg(long, default_value = "auto")]
+    pub texture: TextureSize,
+    /// Asset name ([a-z][a-z0-9_-]*); default: from the scene folder's (or the shape's) name.
+    #[arg(long)]
+    pub name: Option<String>,
+    /// Metres per world unit of the source (the capture's units; an analytic field's units).
+    #[arg(long, default_value_t = 1.0)]
+    pub metres_per_unit: f64,
+    /// Also write a .usdz package.
+    #[arg(long)]
+    pub usdz: bool,
+}
+
 /// Everything the export needs besides the fields.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct ExportConfig {
@@ -186,7 +214,7 @@ fn valid_name(name: &str) -> bool {
 }
 
 /// Fail early (before any heavy work) when `out_dir` cannot be created or written.
-fn check_writable(out_dir: &Path) -> Result<(), DataError> {
+pub fn check_writable(out_dir: &Path) -> Result<(), DataError> {
     std::fs::create_dir_all(out_dir)
         .map_err(|e| DataError::new(out_dir, format!("cannot create output folder: {e}")))?;
     let probe = out_dir.join(format!(".pii-bake-probe-{}", std::process::id()));

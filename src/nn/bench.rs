@@ -15,7 +15,7 @@ use anyhow::Context as _;
 use rayon::prelude::*;
 
 use crate::backend::{Backend, BackendChoice};
-use crate::cli::Context;
+use crate::context::Context;
 use crate::nn::encoding::EncodingConfig;
 use crate::nn::field::SdfFieldConfig;
 use crate::nn::mlp::{Init, Mlp, Real};

@@ -1,1 +1,564 @@
-//! Sphere tracing, differentiable surface points, stage-1 and stage-2 renderers.
+//! Sphere tracing, secondary rays and the min-SDF along rays: batched over rays, one batched
+//! field evaluation per step, so the same loop runs on the cpu backend and on wgpu (the field
+//! evaluates its MLP on whichever backend it was given).
+//!
+//! Everything works in the scene's normalised frame: the object inside the bounding sphere of
+//! radius [`TraceConfig::bound`] (1, IDR's convention).
+//!
+//! Primary rays ([`trace`]), as IDR's ray tracer with the paper's refinement:
+//! 1. intersect the bounding sphere; rays that miss it miss the object;
+//! 2. sphere tracing from the near intersection, `sphere_steps` steps, a ray converges when
+//!    |f| < threshold; a ray that steps past the far intersection misses; a ray that lands
+//!    inside (f < 0) or runs out of steps is *unfinished*;
+//! 3. unfinished rays: `sampler_samples` uniform samples between where tracing stopped (less
+//!    one step back when it overshot) and the far intersection; the first sign change (+ → −)
+//!    is refined by `secant_steps` secant steps; no sign change = miss. The sampler's smallest
+//!    value is that ray's min-SDF point (the mask loss reuses it);
+//! 4. [`TraceMode::Refined`] (supplementary §6): threshold 1e-3 and one Newton step along the
+//!    ray on every hit, `t ← t − f(x)/(∂f/∂t)` with a central difference for `∂f/∂t`.
+//!
+//! [`TraceMode::Classic`] is the public code's setting (threshold 5e-5, no Newton step).
+//!
+//! Secondary rays ([`trace_secondary`]): the same sphere-tracing step from `t = start_offset`
+//! for a fixed step count (stage 2 traces from surface points toward each light lobe).
+//!
+//! The differentiable surface point (implicit differentiation) lives in the trainer
+//! (`train::stage1`), which owns the parameters: with `x0` from here,
+//! `x(θ) = x0 − v·(f(x0;θ) − f(x0;θ0))/(∇f(x0)·v)`, so a loss's `∂L/∂x` reaches the parameters as
+//! `−(∂L/∂x · v)/(∇f·v)` times `∂f(x0)/∂θ`.
+
+use crate::backend::BackendError;
+
+/// Tracing variant.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TraceMode {
+    /// IDR's public code: threshold 5e-5, sphere tracing + sampler + secant.
+    Classic,
+    /// The paper's refined tracing: threshold 1e-3 plus a Newton step along the ray.
+    Refined,
+}
+
+impl TraceMode {
+    pub fn name(self) -> &'static str {
+        match self {
+            TraceMode::Classic => "classic",
+            TraceMode::Refined => "refined",
+        }
+    }
+}
+
+/// Sphere-tracing settings. [`TraceConfig::new`] gives the paper's values for a mode.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct TraceConfig {
+    pub mode: TraceMode,
+    /// Convergence threshold on |f|.
+    pub threshold: f32,
+    pub sphere_steps: usize,
+    pub sampler_samples: usize,
+    pub secant_steps: usize,
+    /// Radius of the bounding sphere (normalised units).
+    pub bound: f32,
+    /// Newton step after convergence (refined mode).
+    pub newton: bool,
+}
+
+impl TraceConfig {
+    pub fn new(mode: TraceMode) -> Self {
+        match mode {
+            TraceMode::Classic => Self {
+                mode,
+                threshold: 5e-5,
+                sphere_steps: 10,
+                sampler_samples: 100,
+                secant_steps: 32,
+                bound: 1.0,
+                newton: false,
+            },
+            TraceMode::Refined => Self {
+                mode,
+                threshold: 1e-3,
+                sphere_steps: 10,
+                sampler_samples: 100,
+                secant_steps: 32,
+                bound: 1.0,
+                newton: true,
+            },
+        }
+    }
+
+    pub fn validate(&self) -> Result<(), BackendError> {
+        let ok = self.threshold.is_finite()
+            && self.threshold > 0.0
+            && self.bound.is_finite()
+            && self.bound > 0.0
+            && self.sampler_samples >= 2;
+        if !ok {
+            return Err(BackendError::Config(format!("invalid trace settings {self:?}")));
+        }
+        Ok(())
+    }
+}
+
+/// A batch of rays: origins and unit directions, normalised frame.
+#[derive(Clone, Debug, Default)]
+pub struct Rays {
+    pub origins: Vec<[f32; 3]>,
+    pub dirs: Vec<[f32; 3]>,
+}
+
+impl Rays {
+    pub fn len(&self) -> usize {
+        self.origins.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.origins.is_empty()
+    }
+    pub fn at(&self, i: usize, t: f32) -> [f32; 3] {
+        let (o, d) = (self.origins[i], self.dirs[i]);
+        [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]]
+    }
+}
+
+/// The ray's intersection interval `[t_near, t_far]` with the sphere of radius `r` at the
+/// origin (t_near clamped at 0 for origins inside), or None.
+pub fn sphere_interval(o: [f32; 3], d: [f32; 3], r: f32) -> Option<(f32, f32)> {
+    let b = o[0] * d[0] + o[1] * d[1] + o[2] * d[2];
+    let c = o[0] * o[0] + o[1] * o[1] + o[2] * o[2] - r * r;
+    let disc = b * b - c;
+    if !(disc > 0.0) {
+        return None;
+    }
+    let s = disc.sqrt();
+    let (t0, t1) = (-b - s, -b + s);
+    if t1 <= 0.0 {
+        return None;
+    }
+    Some((t0.max(0.0), t1))
+}
+
+/// What tracing found for each ray.
+#[derive(Clone, Debug, Default)]
+pub struct TraceResult {
+    /// The ray hit the surface.
+    pub hit: Vec<bool>,
+    /// Distance along the ray of the hit, or of the min-SDF point for rays that missed.
+    pub t: Vec<f32>,
+    /// The surface point (hits) or the min-SDF point along the ray (misses; for a ray that
+    /// misses the bounding sphere, the point of the ray closest to the centre).
+    pub points: Vec<[f32; 3]>,
+    /// The field's value at `points` (as traced; before the Newton step for refined hits).
+    pub sdf: Vec<f32>,
+    /// The ray went through the sampler (did not converge by sphere tracing).
+    pub sampled: Vec<bool>,
+    /// Field evaluations spent (points).
+    pub evaluations: usize,
+}
+
+impl TraceResult {
+    pub fn hits(&self) -> usize {
+        self.hit.iter().filter(|h| **h).count()
+    }
+}
+
+/// A batched SDF: values at `[n, 3]` points (flattened).
+pub trait SdfBatch {
+    fn sdf(&self, points: &[f32]) -> Result<Vec<f32>, BackendError>;
+}
+
+impl<F: Fn(&[f32]) -> Result<Vec<f32>, BackendError>> SdfBatch for F {
+    fn sdf(&self, points: &[f32]) -> Result<Vec<f32>, BackendError> {
+        self(points)
+    }
+}
+
+fn eval_at(f: &dyn SdfBatch, pts: &[[f32; 3]], count: &mut usize) -> Result<Vec<f32>, BackendError> {
+    *count += pts.len();
+    if pts.is_empty() {
+        return Ok(Vec::new());
+    }
+    let flat: &[f32] = bytemuck::cast_slice(pts);
+    let v = f.sdf(flat)?;
+    if v.len() != pts.len() {
+        return Err(BackendError::Shape(format!("sdf batch returned {} values for {} points", v.len(), pts.len())));
+    }
+    Ok(v)
+}
+
+/// Trace primary rays (see the module docs).
+pub fn trace(f: &dyn SdfBatch, rays: &Rays, cfg: &TraceConfig) -> Result<TraceResult, BackendError> {
+    cfg.validate()?;
+    let n = rays.len();
+    let mut evals = 0usize;
+    let mut res = TraceResult {
+        hit: vec![false; n],
+        t: vec![0.0; n],
+        points: vec![[0.0; 3]; n],
+        sdf: vec![f32::INFINITY; n],
+        sampled: vec![false; n],
+        evaluations: 0,
+    };
+    let mut interval = vec![(0.0f32, 0.0f32); n];
+    // Rays still sphere tracing: (ray, t, last t with f > 0).
+    let mut active: Vec<(usize, f32, f32)> = Vec::with_capacity(n);
+    for i in 0..n {
+        match sphere_interval(rays.origins[i], rays.dirs[i], cfg.bound) {
+            Some((a, b)) => {
+                interval[i] = (a, b);
+                active.push((i, a, a));
+            }
+            None => {
+                // Closest point to the centre: the mask loss pushes the field up there.
+                let o = rays.origins[i];
+                let d = rays.dirs[i];
+                let t = -(o[0] * d[0] + o[1] * d[1] + o[2] * d[2]);
+                res.t[i] = t.max(0.0);
+                res.points[i] = rays.at(i, res.t[i]);
+            }
+        }
+    }
+    // Unfinished rays for the sampler: (ray, t_start).
+    let mut unfinished: Vec<(usize, f32)> = Vec::new();
+    for step in 0..=cfg.sphere_steps {
+        if active.is_empty() {
+            break;
+        }
+        let pts: Vec<[f32; 3]> = active.iter().map(|&(i, t, _)| rays.at(i, t)).collect();
+        let v = eval_at(f, &pts, &mut evals)?;
+        let mut next = Vec::with_capacity(active.len());
+        for (k, &(i, t, last_pos)) in active.iter().enumerate() {
+            let fv = v[k];
+            if !fv.is_finite() {
+                // A broken field: treat as a miss at the near point.
+                res.t[i] = t;
+                res.points[i] = pts[k];
+                continue;
+            }
+            if fv.abs() < cfg.threshold {
+                res.hit[i] = true;
+                res.t[i] = t;
+                res.points[i] = pts[k];
+                res.sdf[i] = fv;
+                continue;
+            }
+            if fv < 0.0 || step == cfg.sphere_steps {
+                // Overshot into the surface (or out of steps): the sampler looks from the last
+                // point known outside.
+                unfinished.push((i, if fv < 0.0 { last_pos } else { t }));
+                continue;
+            }
+            let tn = t + fv;
+            if tn > interval[i].1 {
+                // Left the sphere without meeting the surface: the smallest value seen so far is
+                // not a good min-SDF estimate, so let the sampler look at the whole segment.
+                unfinished.push((i, interval[i].0));
+                continue;
+            }
+            next.push((i, tn, t));
+        }
+        active = next;
+    }
+
+    // Sampler + secant on unfinished rays.
+    if !unfinished.is_empty() {
+        let s = cfg.sampler_samples;
+        let mut pts = Vec::with_capacity(unfinished.len() * s);
+        for &(i, t0) in &unfinished {
+            let t1 = interval[i].1;
+            for j in 0..s {
+                let t = t0 + (t1 - t0) * j as f32 / (s - 1) as f32;
+                pts.push(rays.at(i, t));
+            }
+        }
+        let v = eval_at(f, &pts, &mut evals)?;
+        // Secant brackets: (ray, t_lo, f_lo, t_hi, f_hi).
+        let mut brackets: Vec<(usize, f32, f32, f32, f32)> = Vec::new();
+        for (u, &(i, t0)) in unfinished.iter().enumerate() {
+            res.sampled[i] = true;
+            let t1 = interval[i].1;
+            let ts = |j: usize| t0 + (t1 - t0) * j as f32 / (s - 1) as f32;
+            let row = &v[u * s..(u + 1) * s];
+            let mut found = None;
+            for j in 1..s {
+                if row[j - 1].is_finite() && row[j].is_finite() && row[j - 1] > 0.0 && row[j] <= 0.0 {
+                    found = Some(j);
+                    break;
+                }
+            }
+            match found {
+                Some(j) => brackets.push((i, ts(j - 1), row[j - 1], ts(j), row[j])),
+                None => {
+                    let (mut jm, mut vm) = (0, f32::INFINITY);
+                    for (j, &x) in row.iter().enumerate() {
+                        if x.is_finite() && x < vm {
+                            vm = x;
+                            jm = j;
+                        }
+                    }
+                    res.t[i] = ts(jm);
+                    res.points[i] = rays.at(i, res.t[i]);
+                    res.sdf[i] = vm;
+                }
+            }
+        }
+        for _ in 0..cfg.secant_steps {
+            if brackets.is_empty() {
+                break;
+            }
+            let mid: Vec<[f32; 3]> = brackets
+                .iter()
+                .map(|&(i, tl, fl, th, fh)| rays.at(i, secant(tl, fl, th, fh)))
+                .collect();
+            let v = eval_at(f, &mid, &mut evals)?;
+            let mut next = Vec::with_capacity(brackets.len());
+            for (k, &(i, tl, fl, th, fh)) in brackets.iter().enumerate() {
+                let tm = secant(tl, fl, th, fh);
+                let fm = v[k];
+                if !fm.is_finite() || fm.abs() < cfg.threshold * 0.1 {
+                    res.hit[i] = true;
+                    res.t[i] = tm;
+                    res.points[i] = mid[k];
+                    res.sdf[i] = if fm.is_finite() { fm } else { 0.0 };
+                    continue;
+                }
+                if fm > 0.0 {
+                    next.push((i, tm, fm, th, fh));
+                } else {
+                    next.push((i, tl, fl, tm, fm));
+                }
+            }
+            brackets = next;
+        }
+        for &(i, tl, fl, th, fh) in &brackets {
+            let tm = secant(tl, fl, th, fh);
+            res.hit[i] = true;
+            res.t[i] = tm;
+            res.points[i] = rays.at(i, tm);
+            res.sdf[i] = 0.5 * (fl + fh);
+        }
+    }
+
+    // Refined: one Newton step along the ray on every hit.
+    if cfg.newton {
+        let hits: Vec<usize> = (0..n).filter(|&i| res.hit[i]).collect();
+        if !hits.is_empty() {
+            let delta = 1e-3f32;
+            let mut pts = Vec::with_capacity(hits.len() * 3);
+            for &i in &hits {
+                let t = res.t[i];
+                pts.push(rays.at(i, t));
+                pts.push(rays.at(i, t + delta));
+                pts.push(rays.at(i, t - delta));
+            }
+            let v = eval_at(f, &pts, &mut evals)?;
+            for (k, &i) in hits.iter().enumerate() {
+                let (f0, fp, fm) = (v[3 * k], v[3 * k + 1], v[3 * k + 2]);
+                let dfdt = (fp - fm) / (2.0 * delta);
+                if !(f0.is_finite() && dfdt.is_finite()) || dfdt > -0.05 {
+                    continue; // grazing or back-facing: keep the traced point
+                }
+                let step = (-f0 / dfdt).clamp(-10.0 * cfg.threshold, 10.0 * cfg.threshold);
+                res.t[i] += step;
+                res.points[i] = rays.at(i, res.t[i]);
+            }
+        }
+    }
+    res.evaluations = evals;
+    Ok(res)
+}
+
+fn secant(tl: f32, fl: f32, th: f32, fh: f32) -> f32 {
+    let den = fl - fh;
+    if den.abs() < 1e-12 {
+        return 0.5 * (tl + th);
+    }
+    (tl + fl * (th - tl) / den).clamp(tl.min(th), tl.max(th))
+}
+
+/// Secondary rays: sphere tracing from `t = start_offset` for exactly `steps` steps (the
+/// paper's 10 from 0.01 toward each light lobe). A ray hits when |f| < `threshold` before it
+/// leaves the sphere of radius `bound`. Returns `(hit, t)` per ray.
+pub fn trace_secondary(
+    f: &dyn SdfBatch,
+    rays: &Rays,
+    start_offset: f32,
+    steps: usize,
+    threshold: f32,
+    bound: f32,
+) -> Result<(Vec<bool>, Vec<f32>), BackendError> {
+    let n = rays.len();
+    let mut hit = vec![false; n];
+    let mut t_out = vec![f32::INFINITY; n];
+    let mut active: Vec<(usize, f32, f32)> = (0..n)
+        .filter_map(|i| sphere_interval(rays.origins[i], rays.dirs[i], bound).map(|(_, t1)| (i, start_offset, t1)))
+        .collect();
+    let mut evals = 0;
+    for _ in 0..steps {
+        if active.is_empty() {
+            break;
+        }
+        let pts: Vec<[f32; 3]> = active.iter().map(|&(i, t, _)| rays.at(i, t)).collect();
+        let v = eval_at(f, &pts, &mut evals)?;
+        let mut next = Vec::with_capacity(active.len());
+        for (k, &(i, t, t1)) in active.iter().enumerate() {
+            let fv = v[k];
+            if !fv.is_finite() {
+                continue;
+            }
+            if fv < threshold {
+                hit[i] = true;
+                t_out[i] = t;
+                continue;
+            }
+            let tn = t + fv;
+            if tn <= t1 {
+                next.push((i, tn, t1));
+            }
+        }
+        active = next;
+    }
+    Ok((hit, t_out))
+}
+
+/// The smallest sampled field value along each ray between `t0[i]` and `t1[i]` (`samples`
+/// uniform samples, jittered by `jitter` ∈ [0, 1) of a sample spacing): returns `(t, point)`.
+pub fn min_sdf_along(
+    f: &dyn SdfBatch,
+    rays: &Rays,
+    t0: &[f32],
+    t1: &[f32],
+    samples: usize,
+    jitter: f32,
+) -> Result<(Vec<f32>, Vec<[f32; 3]>), BackendError> {
+    let n = rays.len();
+    let s = samples.max(2);
+    let mut pts = Vec::with_capacity(n * s);
+    let ts = |i: usize, j: usize| t0[i] + (t1[i] - t0[i]) * ((j as f32 + jitter).min((s - 1) as f32)) / (s - 1) as f32;
+    for i in 0..n {
+        for j in 0..s {
+            pts.push(rays.at(i, ts(i, j)));
+        }
+    }
+    let mut evals = 0;
+    let v = eval_at(f, &pts, &mut evals)?;
+    let mut t = vec![0.0; n];
+    let mut p = vec![[0.0; 3]; n];
+    for i in 0..n {
+        let (mut jm, mut vm) = (0, f32::INFINITY);
+        for j in 0..s {
+            let x = v[i * s + j];
+            if x.is_finite() && x < vm {
+                vm = x;
+                jm = j;
+            }
+        }
+        t[i] = ts(i, jm);
+        p[i] = pts[i * s + jm];
+    }
+    Ok((t, p))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sphere(r: f32) -> impl Fn(&[f32]) -> Result<Vec<f32>, BackendError> {
+        move |p: &[f32]| Ok(p.chunks_exact(3).map(|q| (q[0] * q[0] + q[1] * q[1] + q[2] * q[2]).sqrt() - r).collect())
+    }
+
+    fn rays_toward_origin(n: usize) -> Rays {
+        let mut r = Rays::default();
+        for k in 0..n {
+            let y = -0.9 + 1.8 * k as f32 / (n - 1) as f32;
+            r.origins.push([0.0, y, 3.0]);
+            r.dirs.push([0.0, 0.0, -1.0]);
+        }
+        r
+    }
+
+    #[test]
+    fn both_modes_find_a_sphere_and_its_silhouette() {
+        let f = sphere(0.5);
+        let rays = rays_toward_origin(37);
+        for mode in [TraceMode::Classic, TraceMode::Refined] {
+            let cfg = TraceConfig::new(mode);
+            let r = trace(&f, &rays, &cfg).unwrap();
+            for i in 0..rays.len() {
+                let y = rays.origins[i][1];
+                let expect_hit = y.abs() < 0.5;
+                if (y.abs() - 0.5).abs() < 0.02 {
+                    continue; // silhouette: either is fine
+                }
+                assert_eq!(r.hit[i], expect_hit, "{mode:?} ray y={y}");
+                if expect_hit {
+                    let z = (0.25 - y * y).sqrt();
+                    let tol = if mode == TraceMode::Classic { 1e-3 } else { 2e-3 };
+                    assert!((r.points[i][2] - z).abs() < tol, "{mode:?} y={y}: z {} vs {z}", r.points[i][2]);
+                } else {
+                    // Min-SDF point: the ray's closest approach to the sphere (z = 0).
+                    assert!(r.points[i][2].abs() < 0.05, "{mode:?} y={y}: min point {:?}", r.points[i]);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn refined_newton_step_tightens_a_loose_threshold() {
+        let f = sphere(0.5);
+        let rays = rays_toward_origin(9);
+        let mut loose = TraceConfig::new(TraceMode::Refined);
+        loose.threshold = 2e-2;
+        loose.newton = false;
+        let a = trace(&f, &rays, &loose).unwrap();
+        loose.newton = true;
+        let b = trace(&f, &rays, &loose).unwrap();
+        let err = |r: &TraceResult| {
+            (0..rays.len())
+                .filter(|&i| r.hit[i])
+                .map(|i| {
+                    let p = r.points[i];
+                    ((p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt() - 0.5).abs()
+                })
+                .fold(0.0f32, f32::max)
+        };
+        assert!(a.hits() > 0 && a.hits() == b.hits());
+        assert!(err(&b) < 0.2 * err(&a), "newton {} vs plain {}", err(&b), err(&a));
+    }
+
+    #[test]
+    fn thin_shell_behind_a_miss_goes_through_the_sampler() {
+        // A thin plate |z| < 0.01: sphere tracing may step over it; the sampler + secant find it.
+        let f = |p: &[f32]| Ok::<_, BackendError>(p.chunks_exact(3).map(|q| q[2].abs() - 0.01).collect());
+        let rays = Rays { origins: vec![[0.3, 0.0, 2.0]], dirs: vec![[0.0, 0.0, -1.0]] };
+        let r = trace(&f, &rays, &TraceConfig::new(TraceMode::Classic)).unwrap();
+        assert!(r.hit[0]);
+        assert!((r.points[0][2] - 0.01).abs() < 1e-3, "{:?}", r.points[0]);
+    }
+
+    #[test]
+    fn secondary_rays_and_min_sdf() {
+        let f = sphere(0.3);
+        // From a point on a plane below the sphere, looking up (hits) and sideways (misses).
+        let rays = Rays { origins: vec![[0.0, -0.6, 0.0], [0.0, -0.6, 0.0]], dirs: vec![[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]] };
+        let (hit, t) = trace_secondary(&f, &rays, 0.01, 10, 1e-3, 1.0).unwrap();
+        assert!(hit[0] && !hit[1]);
+        assert!((t[0] - 0.3).abs() < 2e-3, "t {}", t[0]);
+        let (tm, pm) = min_sdf_along(&f, &rays, &[0.0, 0.0], &[1.2, 0.8], 61, 0.0).unwrap();
+        assert!((tm[0] - 0.6).abs() < 0.03, "{tm:?}");
+        assert!(pm[1][0] < 0.02, "sideways ray's min is at its start: {pm:?}");
+    }
+
+    #[test]
+    fn rays_missing_the_bound_and_nan_fields_are_misses() {
+        let f = sphere(0.5);
+        let rays = Rays { origins: vec![[0.0, 2.0, 3.0]], dirs: vec![[0.0, 0.0, -1.0]] };
+        let r = trace(&f, &rays, &TraceConfig::new(TraceMode::Classic)).unwrap();
+        assert!(!r.hit[0]);
+        assert_eq!(r.points[0], [0.0, 2.0, 0.0]);
+        let nan = |p: &[f32]| Ok::<_, BackendError>(vec![f32::NAN; p.len() / 3]);
+        let rays = rays_toward_origin(5);
+        let r = trace(&nan, &rays, &TraceConfig::new(TraceMode::Refined)).unwrap();
+        assert_eq!(r.hits(), 0);
+        assert!(r.points.iter().flatten().all(|v| v.is_finite()));
+    }
+}

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use serde_json::json;
 
 use super::{load, ReadOptions, Scene, Split};
-use crate::cli::Context;
+use crate::context::Context;
 
 #[derive(Debug, clap::Args)]
 pub struct InfoArgs {

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::Context as _;
 
-use crate::cli::Context;
+use crate::context::Context;
 use crate::sg::env::{read_latlong_exr, LatlongConvention};
 use crate::sg::fit::{auto_choice, fit_ladder, AutoTolerance, FitConfig, Rung, DEFAULT_IRRADIANCE_TOLERANCE, DEFAULT_TOLERANCE, LOBE_LADDER};
 use crate::util::atomic_write;

@@ -1,5 +1,7 @@
 //! Training stages, losses, schedules, progress, checkpoint/resume.
 
+pub mod cli;
 pub mod hull;
 pub mod photo;
 pub mod preview;
+pub mod stage1;

@@ -1,7 +1,7 @@
-//! The `bake` command (photos → asset) as far as the pipeline goes today: a **preview bake**.
+//! `bake --preset preview`: photos → asset without training (visual hull + photo colour).
 //!
-//! The inverse-rendering stages (SDF training, light/material/indirect) are not implemented yet,
-//! so `bake` runs the most complete path that exists and says so in its output and report:
+//! `bake --preset preview`: no training, seconds instead of minutes; what it does, it says in its
+//! output and report:
 //!
 //! 1. read the scene (any supported format), train split;
 //! 2. geometry: the visual hull of the masks ([`super::hull`]) as a signed distance grid;
@@ -27,51 +27,67 @@ use glam::{DMat3, DQuat, DVec3};
 use super::hull::{carve, signed_distance, Grid3, MaskView};
 use super::photo::{project_colour, PhotoView};
 use crate::backend::{Backend, BackendError};
-use crate::cli::Context;
-use crate::export::{ExportConfig, TextureSize};
+use crate::context::Context;
+use crate::export::ExportConfig;
 use crate::mesh::field::{Aabb, MaterialField, MaterialSamples, SdfField, SdfSamples};
 use crate::mesh::MeshConfig;
 use crate::scene::{ReadOptions, Scene, Split, View};
 use crate::sg::env::{EnvSgs, SgLobe};
 use crate::util::DataError;
 
+/// What `bake` ships.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum BakePreset {
+    /// Stage 1 with the fast networks (hash grid): minutes on a CPU.
+    Fast,
+    /// Stage 1 with the paper's networks (8×512): for a GPU.
+    Paper,
+    /// No training: the visual hull of the masks with the photos' colour (seconds).
+    Preview,
+}
+
 #[derive(Debug, clap::Args)]
 pub struct BakeArgs {
     /// Scene folder (transforms.json, IDR/DTU cameras_sphere.npz, LLFF poses_bounds.npy or COLMAP).
     pub scene: PathBuf,
-    /// Output folder for the asset.
+    #[command(flatten)]
+    pub asset: crate::export::AssetArgs,
+    /// `fast` (default) or `paper`: train stage 1 and export it; `preview`: the visual hull, no training.
+    #[arg(long, value_enum, default_value_t = BakePreset::Fast)]
+    pub preset: BakePreset,
+    /// Sphere tracing for training: `refined` or `classic`.
+    #[arg(long, value_enum, default_value_t = crate::render::TraceMode::Refined)]
+    pub tracing: crate::render::TraceMode,
+    /// SDF initialisation: `hull` or `sphere`.
+    #[arg(long, value_enum, default_value_t = super::stage1::InitMode::Hull)]
+    pub init: super::stage1::InitMode,
+    /// Training iterations (default: the preset's).
     #[arg(long)]
-    pub out: PathBuf,
-    /// Visual-hull grid resolution (voxels per side of the normalised cube [-1, 1]^3).
+    pub iterations: Option<u64>,
+    /// Rays per training iteration (default: the preset's).
+    #[arg(long)]
+    pub rays: Option<usize>,
+    /// Training seed.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Steps of the hull init's fit (default: the preset's).
+    #[arg(long)]
+    pub init_steps: Option<u64>,
+    /// Run folder for the training checkpoints (default: <out>/run); an existing run there resumes.
+    #[arg(long)]
+    pub run: Option<PathBuf>,
+    /// Preview: visual-hull grid resolution (voxels per side of the normalised cube [-1, 1]^3).
     #[arg(long, default_value_t = 128)]
     pub hull_resolution: usize,
-    /// Marching grid nodes along the longest side of the object's box.
-    #[arg(long, default_value_t = 128)]
-    pub resolution: usize,
-    /// Simplification error bound in normalised scene units (default: one hull voxel).
-    #[arg(long)]
-    pub error_bound: Option<f32>,
-    /// Texture size: `auto` (one texel per photo pixel footprint) or a power of two.
-    #[arg(long, default_value = "auto")]
-    pub texture: TextureSize,
-    /// Asset name ([a-z][a-z0-9_-]*); default: from the scene folder's name.
-    #[arg(long)]
-    pub name: Option<String>,
-    /// Scene world units → metres (the readers keep the capture's units).
-    #[arg(long, default_value_t = 1.0)]
-    pub metres_per_unit: f64,
-    /// Constant perceptual roughness of the preview material.
+    /// Constant perceptual roughness of the shipped material (stage 2 will estimate it).
     #[arg(long, default_value_t = 0.5)]
     pub roughness: f32,
-    /// A voxel must be seen by at least this fraction of the views to stay in the hull.
+    /// Preview: a voxel must be seen by at least this fraction of the views to stay in the hull.
     #[arg(long, default_value_t = 0.5)]
     pub min_view_fraction: f32,
     /// Integer image downscale factor.
     #[arg(long, default_value_t = 1)]
     pub downscale: usize,
-    /// Also write a .usdz package.
-    #[arg(long)]
-    pub usdz: bool,
 }
 
 /// A view in the normalised frame, as hull carving and photo projection see it.
@@ -286,11 +302,15 @@ pub fn uniform_environment() -> EnvSgs {
 }
 
 fn asset_name(args: &BakeArgs) -> String {
-    if let Some(n) = &args.name {
+    if let Some(n) = &args.asset.name {
         return n.clone();
     }
-    let stem = args
-        .scene
+    name_from_path(&args.scene)
+}
+
+/// An asset name (`[a-z][a-z0-9_-]*`) from a scene folder's name.
+pub fn name_from_path(scene: &Path) -> String {
+    let stem = scene
         .canonicalize()
         .ok()
         .and_then(|p| p.file_name().map(|s| s.to_string_lossy().to_lowercase()))
@@ -311,21 +331,29 @@ fn ground_truth_mesh(scene_dir: &Path) -> Option<PathBuf> {
 }
 
 pub fn run(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
+    if !(args.asset.metres_per_unit.is_finite() && args.asset.metres_per_unit > 0.0) {
+        anyhow::bail!("--metres-per-unit must be > 0, got {}", args.asset.metres_per_unit);
+    }
+    crate::export::check_writable(&args.asset.out)?;
+    match args.preset {
+        BakePreset::Preview => run_preview(args, ctx),
+        BakePreset::Fast | BakePreset::Paper => super::cli::bake_trained(args, ctx),
+    }
+}
+
+/// The preview bake (see the module docs).
+pub fn run_preview(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
     let t_total = Instant::now();
     if !(8..=1024).contains(&args.hull_resolution) {
         anyhow::bail!("--hull-resolution {} must be in 8..=1024", args.hull_resolution);
-    }
-    if !(args.metres_per_unit.is_finite() && args.metres_per_unit > 0.0) {
-        anyhow::bail!("--metres-per-unit must be > 0, got {}", args.metres_per_unit);
     }
     if !(0.0..=1.0).contains(&args.roughness) {
         anyhow::bail!("--roughness must be in [0, 1], got {}", args.roughness);
     }
     let backend = ctx.backend()?;
     ctx.say(
-        "preview bake: geometry from the visual hull of the masks; colour projected from the photos \
-         with lighting baked in; constant roughness; uniform white environment. The inverse-rendering \
-         training stages are not implemented yet.",
+        "preview bake (no training): geometry from the visual hull of the masks; colour projected from \
+         the photos with lighting baked in; constant roughness; uniform white environment.",
     );
 
     // 1. Scene.
@@ -420,15 +448,15 @@ pub fn run(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
         name: name.clone(),
         // The hull is known to a voxel: bound the simplification by one hull voxel.
         mesh: MeshConfig {
-            resolution: args.resolution,
-            error_bound: Some(args.error_bound.unwrap_or(2.0 / res as f32)),
+            resolution: args.asset.resolution.unwrap_or(128),
+            error_bound: Some(args.asset.error_bound.unwrap_or(2.0 / res as f32)),
             ..Default::default()
         },
-        texture: args.texture,
-        metres_per_unit: (args.metres_per_unit / scale) as f32,
-        usdz: args.usdz,
+        texture: args.asset.texture,
+        metres_per_unit: (args.asset.metres_per_unit / scale) as f32,
+        usdz: args.asset.usdz,
         provenance: serde_json::json!({
-            "method": "preview bake (visual hull + photo projection); inverse rendering not implemented yet",
+            "method": "preview bake (visual hull + photo projection, no training)",
             "scene": args.scene.display().to_string(),
             "format": scene.format.name(),
             "views": views.len(),
@@ -438,7 +466,7 @@ pub fn run(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
     };
     let env = uniform_environment();
     let t = Instant::now();
-    let report = crate::export::export_asset(&backend, &hull, &material, Some(&env), &cfg, &args.out)?;
+    let report = crate::export::export_asset(&backend, &hull, &material, Some(&env), &cfg, &args.asset.out)?;
     let seconds_export = t.elapsed().as_secs_f64();
     ctx.say(format!(
         "export: {} triangles (error bound {:.4} normalised units, watertight {}), {} UV charts, {}² textures, files in {} [{:.2} s]",
@@ -447,41 +475,12 @@ pub fn run(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
         report.mesh.watertight,
         report.uv_charts,
         report.texture_size,
-        args.out.display(),
+        args.asset.out.display(),
         seconds_export
     ));
 
     // 6. Ground truth, when the scene has it.
-    let mut gt_metrics = serde_json::Value::Null;
-    if let Some(gt_path) = ground_truth_mesh(&args.scene) {
-        let t = Instant::now();
-        let mut gt = crate::eval::mesh::Mesh::read(&gt_path)?;
-        let c = scene.normalisation.center;
-        let shift = DVec3::from(report.origin_shift_m.map(f64::from));
-        for p in &mut gt.positions {
-            *p = rotation * (*p - c) * args.metres_per_unit + shift;
-        }
-        let pred = crate::eval::mesh::Mesh {
-            positions: report.geometry.positions.iter().map(|p| DVec3::from(p.map(f64::from))).collect(),
-            triangles: report.geometry.indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect(),
-        };
-        let m = crate::eval::mesh::compare_meshes(&pred, &gt, 20_000, 1);
-        let (lo, hi) = report.bounds_m;
-        let size = (0..3).map(|k| (hi[k] - lo[k]) as f64).fold(0.0, f64::max);
-        ctx.say(format!(
-            "vs {}: Chamfer {:.4} m ({:.2}% of the object's size), normal consistency {:.3} [{:.2} s]",
-            gt_path.display(),
-            m.chamfer,
-            100.0 * m.chamfer / size.max(1e-12),
-            m.normal_consistency,
-            t.elapsed().as_secs_f64()
-        ));
-        gt_metrics = serde_json::json!({
-            "gt_mesh": gt_path.display().to_string(),
-            "metrics": m,
-            "chamfer_over_object_size": m.chamfer / size.max(1e-12),
-        });
-    }
+    let gt_metrics = ground_truth_metrics(&args.scene, scene.normalisation.center, rotation, args.asset.metres_per_unit, &report, ctx)?;
 
     let summary = serde_json::json!({
         "method": "preview",
@@ -490,7 +489,7 @@ pub fn run(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
             "albedo": "photo projection, cos²-weighted over visible views: lit colour, lighting baked in",
             "roughness": format!("constant {}", args.roughness),
             "environment": "uniform white (radiance 1)",
-            "not_implemented": "SDF training, environment/material/indirect-light training (inverse rendering)",
+            "not_done": "no training: geometry is the visual hull; light and material are not separated",
         },
         "scene": {
             "path": args.scene.display().to_string(),
@@ -509,15 +508,57 @@ pub fn run(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
         "export": report,
         "ground_truth": gt_metrics,
     });
-    crate::util::atomic_write(&args.out.join("bake_report.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
+    crate::util::atomic_write(&args.asset.out.join("bake_report.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
     ctx.emit("bake", summary);
     ctx.say(format!(
         "wrote {}/{}.glb, asset.usda, env.exr, bake_report.json in {:.1} s",
-        args.out.display(),
+        args.asset.out.display(),
         name,
         t_total.elapsed().as_secs_f64()
     ));
     Ok(())
+}
+
+/// Chamfer distance and normal consistency of an exported asset against the scene's
+/// ground-truth mesh (`gt/mesh.obj|ply`), in metres in the asset frame; `Null` without one.
+pub fn ground_truth_metrics(
+    scene_dir: &Path,
+    center: DVec3,
+    rotation: DMat3,
+    metres_per_unit: f64,
+    report: &crate::export::ExportReport,
+    ctx: &Context,
+) -> anyhow::Result<serde_json::Value> {
+    let Some(gt_path) = ground_truth_mesh(scene_dir) else {
+        return Ok(serde_json::Value::Null);
+    };
+    let t = Instant::now();
+    let mut gt = crate::eval::mesh::Mesh::read(&gt_path)?;
+    let c = center;
+    let shift = DVec3::from(report.origin_shift_m.map(f64::from));
+    for p in &mut gt.positions {
+        *p = rotation * (*p - c) * metres_per_unit + shift;
+    }
+    let pred = crate::eval::mesh::Mesh {
+        positions: report.geometry.positions.iter().map(|p| DVec3::from(p.map(f64::from))).collect(),
+        triangles: report.geometry.indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect(),
+    };
+    let m = crate::eval::mesh::compare_meshes(&pred, &gt, 20_000, 1);
+    let (lo, hi) = report.bounds_m;
+    let size = (0..3).map(|k| (hi[k] - lo[k]) as f64).fold(0.0, f64::max);
+    ctx.say(format!(
+        "vs {}: Chamfer {:.4} m ({:.2}% of the object's size), normal consistency {:.3} [{:.2} s]",
+        gt_path.display(),
+        m.chamfer,
+        100.0 * m.chamfer / size.max(1e-12),
+        m.normal_consistency,
+        t.elapsed().as_secs_f64()
+    ));
+    Ok(serde_json::json!({
+        "gt_mesh": gt_path.display().to_string(),
+        "metrics": m,
+        "chamfer_over_object_size": m.chamfer / size.max(1e-12),
+    }))
 }
 
 #[cfg(test)]

@@ -1,0 +1,685 @@
+//! `pii-bake train` (stage 1: geometry), `export --run` and the trained `bake`: the command-line
+//! side of [`super::stage1`] — scene → data, presets sized to the scene, the visual-hull init,
+//! the loop with progress, checkpoints, Ctrl-C and `--resume`, held-out evaluation, and the
+//! export of a trained run (SDF → mesh, radiance preview → textures).
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::Context as _;
+use glam::{DMat3, DVec3};
+use serde::{Deserialize, Serialize};
+
+use super::hull::{carve, signed_distance, MaskView};
+use super::preview::{asset_rotation, smooth, ViewAdapter};
+use super::stage1::{scene_key, InitMode, Model, Preset, Stage1Config, StepStats, TrainData, Trainer, CHECKPOINT};
+use crate::backend::{Backend, BackendError};
+use crate::context::Context;
+use crate::export::{AssetArgs, ExportConfig, ExportReport};
+use crate::mesh::field::{Aabb, MaterialField, MaterialSamples, SdfField as MeshSdf, SdfSamples};
+use crate::mesh::MeshConfig;
+use crate::render::{trace, Rays, TraceConfig, TraceMode};
+use crate::scene::{ReadOptions, Scene, Split, View};
+use crate::util::DataError;
+
+/// Which stage to train.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum Stage {
+    /// Stage 1: SDF + radiance net.
+    Geometry,
+}
+
+/// Training options shared by `train` and `bake`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct TrainOptions {
+    /// Network preset: `fast` (hash grid, CPU-friendly) or `paper` (IDR's 8×512 networks).
+    #[arg(long, value_enum, default_value_t = Preset::Fast)]
+    pub preset: Preset,
+    /// Sphere tracing: `refined` (threshold 1e-3 + Newton step) or `classic` (5e-5, IDR's code).
+    #[arg(long, value_enum, default_value_t = TraceMode::Refined)]
+    pub tracing: TraceMode,
+    /// SDF initialisation: `hull` (fit to the visual hull of the masks first) or `sphere`.
+    #[arg(long, value_enum, default_value_t = InitMode::Hull)]
+    pub init: InitMode,
+    /// Photometric iterations (default: the preset's).
+    #[arg(long)]
+    pub iterations: Option<u64>,
+    /// Rays per iteration (default: the preset's).
+    #[arg(long)]
+    pub rays: Option<usize>,
+    /// Seed for initialisation and ray sampling.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Write a checkpoint every N iterations (default: the preset's).
+    #[arg(long)]
+    pub checkpoint_every: Option<u64>,
+    /// Integer image downscale factor.
+    #[arg(long, default_value_t = 1)]
+    pub downscale: usize,
+    /// Steps of the hull init's fit (default: the preset's).
+    #[arg(long)]
+    pub init_steps: Option<u64>,
+}
+
+#[derive(Debug, clap::Args)]
+pub struct TrainArgs {
+    /// Scene folder (transforms.json, IDR/DTU cameras_sphere.npz, LLFF poses_bounds.npy or COLMAP).
+    pub scene: PathBuf,
+    /// Run folder: checkpoints, run.json, loss_curve.csv, train_report.json.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Stage to train.
+    #[arg(long, value_enum, default_value_t = Stage::Geometry)]
+    pub stage: Stage,
+    #[command(flatten)]
+    pub opts: TrainOptions,
+    /// Continue the run in `--out` from its last checkpoint.
+    #[arg(long)]
+    pub resume: bool,
+}
+
+/// What `export --run` needs from a run besides its checkpoint (written to `run.json`'s side).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct RunScene {
+    pub scene: PathBuf,
+    pub format: String,
+    /// World units → normalised units.
+    pub scale: f64,
+    /// Normalised → asset frame (column-major 3×3).
+    pub rotation: [f64; 9],
+    pub key: String,
+}
+
+const RUN_SCENE: &str = "scene.json";
+const LOSS_CURVE: &str = "loss_curve.csv";
+
+/// A finished stage-1 run.
+pub struct Stage1Run {
+    pub trainer: Trainer,
+    pub run_scene: RunScene,
+    pub report: serde_json::Value,
+}
+
+fn train_views(scene: &Scene) -> (Vec<&View>, Vec<&View>) {
+    let mut train: Vec<&View> = scene.views_in(Split::Train).collect();
+    let mut held: Vec<&View> = scene.views_in(Split::Test).collect();
+    if held.is_empty() {
+        held = scene.views_in(Split::Val).collect();
+    }
+    if train.is_empty() {
+        train = scene.views.iter().collect();
+        held.clear();
+    }
+    (train, held)
+}
+
+/// Set by Ctrl-C; the loop checkpoints and stops.
+fn interrupt_flag() -> Arc<AtomicBool> {
+    static FLAG: std::sync::OnceLock<Arc<AtomicBool>> = std::sync::OnceLock::new();
+    FLAG.get_or_init(|| {
+        let f = Arc::new(AtomicBool::new(false));
+        let g = f.clone();
+        if let Err(e) = ctrlc::set_handler(move || g.store(true, Ordering::SeqCst)) {
+            tracing::warn!("cannot install a Ctrl-C handler ({e}): an interrupted run loses work since its last checkpoint");
+        }
+        f
+    })
+    .clone()
+}
+
+fn read_curve(path: &Path, upto: u64) -> Vec<String> {
+    std::fs::read_to_string(path)
+        .map(|s| {
+            s.lines()
+                .skip(1)
+                .filter(|l| l.split(',').next().and_then(|x| x.parse::<u64>().ok()).is_some_and(|st| st <= upto))
+                .map(str::to_owned)
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
+fn curve_line(s: &StepStats, secs: f64) -> String {
+    format!(
+        "{},{:.6e},{:.6e},{:.6e},{:.6e},{:.3},{},{},{},{:.4e},{},{:.4}",
+        s.step, s.loss, s.rgb, s.eikonal, s.mask, s.psnr, s.surface_rays, s.mask_rays, s.alpha, s.lr_field, s.applied, secs
+    )
+}
+
+fn write_curve(dir: &Path, lines: &[String]) -> Result<(), DataError> {
+    let mut s = String::from("step,loss,rgb,eikonal,mask,psnr,surface_rays,mask_rays,alpha,lr,applied,seconds\n");
+    for l in lines {
+        s.push_str(l);
+        s.push('\n');
+    }
+    crate::util::atomic_write(&dir.join(LOSS_CURVE), s.as_bytes())
+}
+
+/// Train stage 1 on `scene_path` into `run_dir` (see the module docs).
+pub fn train_stage1(
+    scene_path: &Path,
+    opts: &TrainOptions,
+    run_dir: &Path,
+    resume: bool,
+    backend: &Backend,
+    ctx: &Context,
+) -> anyhow::Result<Stage1Run> {
+    let t_total = Instant::now();
+    crate::export::check_writable(run_dir)?;
+    if opts.downscale == 0 {
+        anyhow::bail!("--downscale must be >= 1");
+    }
+    let scene = crate::scene::load(scene_path, &ReadOptions { downscale: opts.downscale })?;
+    let (views, held) = train_views(&scene);
+    if views.is_empty() {
+        return Err(DataError::new(scene_path, "the scene has no views").into());
+    }
+    let data = TrainData::new(&views, 1.0)?;
+    let key = scene_key(&scene, &views);
+    let rotation = asset_rotation(&scene);
+    let run_scene = RunScene {
+        scene: scene_path.canonicalize().unwrap_or_else(|_| scene_path.to_path_buf()),
+        format: scene.format.name().to_string(),
+        scale: scene.normalisation.scale,
+        rotation: rotation.to_cols_array(),
+        key: key.clone(),
+    };
+
+    let mut cfg = Stage1Config::for_scene(opts.preset, opts.tracing, opts.init, &views, held.len(), opts.downscale);
+    cfg.seed = opts.seed;
+    if let Some(n) = opts.iterations {
+        cfg.iterations = n;
+    }
+    if let Some(n) = opts.rays {
+        cfg.rays = n;
+    }
+    if let Some(n) = opts.checkpoint_every {
+        cfg.checkpoint_every = n;
+    }
+    if let Some(n) = opts.init_steps {
+        cfg.hull_fit_steps = n;
+    }
+    let mut curve: Vec<String> = Vec::new();
+    let mut seconds_init = 0.0;
+    let mut hull_report = serde_json::Value::Null;
+    let resuming = resume && run_dir.join(CHECKPOINT).is_file();
+    let mut trainer = if resuming {
+        let (mut t, _) = Trainer::load(run_dir, Some(&key))?;
+        if t.cfg.preset != opts.preset {
+            return Err(DataError::new(
+                &run_dir.join(CHECKPOINT),
+                format!("this run uses the {} preset, not {}", t.cfg.preset.name(), opts.preset.name()),
+            )
+            .into());
+        }
+        if let Some(n) = opts.iterations {
+            t.cfg.iterations = n;
+        }
+        curve = read_curve(&run_dir.join(LOSS_CURVE), t.step);
+        ctx.say(format!("resuming {} at step {} of {}", run_dir.display(), t.step, t.cfg.iterations));
+        t
+    } else {
+        if resume {
+            ctx.say(format!("no checkpoint in {}: starting a new run", run_dir.display()));
+        }
+        let mut t = Trainer::new(cfg.clone())?;
+        if cfg.init == InitMode::Hull {
+            let ti = Instant::now();
+            if views.iter().any(|v| v.mask.is_none()) {
+                anyhow::bail!("the hull init needs masks");
+            }
+            let adapters: Vec<ViewAdapter> = views.iter().map(|v| ViewAdapter::new(v)).collect();
+            let mv: Vec<&dyn MaskView> = adapters.iter().map(|a| a as &dyn MaskView).collect();
+            let res = cfg.sizes.hull_resolution;
+            let min_views = (views.len() / 2).max(1);
+            let inside = carve(&mv, res, 1.0, 0.5, min_views);
+            let n_in = inside.iter().filter(|b| **b).count();
+            if n_in == 0 {
+                return Err(DataError::new(scene_path, "the masks carve away every voxel of the unit cube: the cameras and masks do not agree on an object (check poses and masks)").into());
+            }
+            let grid = smooth(signed_distance(&inside, res, 1.0));
+            let pb = ctx.progress(cfg.hull_fit_steps, "hull init");
+            let err = t.fit_to_grid(backend, &grid, cfg.hull_fit_steps, |s, _| pb.set_position(s + 1))?;
+            pb.finish_and_clear();
+            seconds_init = ti.elapsed().as_secs_f64();
+            hull_report = serde_json::json!({ "resolution": res, "voxels_inside": n_in, "fit_steps": cfg.hull_fit_steps, "fit_loss": err, "seconds": seconds_init });
+            ctx.say(format!("hull init: {res}^3 hull, {} fit steps, loss {err:.4} [{seconds_init:.1} s]", cfg.hull_fit_steps));
+        }
+        t
+    };
+    crate::util::atomic_write(&run_dir.join(RUN_SCENE), serde_json::to_string_pretty(&run_scene)?.as_bytes())?;
+    let cfg = trainer.cfg.clone();
+    ctx.say(format!(
+        "stage 1 ({} preset, {} tracing, {} init) on {}: {} views, {} pixels, {} rays x {} iterations; sizes from the scene: pixel footprint {:.4}, hash grid finest {} (2^{} table), mesh {} nodes",
+        cfg.preset.name(),
+        cfg.trace.mode.name(),
+        match cfg.init { InitMode::Hull => "hull", InitMode::Sphere => "sphere" },
+        scene_path.display(),
+        views.len(),
+        data.pixels(),
+        cfg.rays,
+        cfg.iterations,
+        cfg.sizes.pixel_footprint,
+        cfg.sizes.grid_finest,
+        cfg.sizes.grid_log2_table,
+        cfg.sizes.mesh_resolution
+    ));
+
+    let stop = interrupt_flag();
+    let pb = ctx.progress(cfg.iterations, "stage 1");
+    if let Ok(style) = indicatif::ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {per_sec} eta {eta}") {
+        pb.set_style(style.progress_chars("=> "));
+    }
+    pb.set_position(trainer.step);
+    let t_loop = Instant::now();
+    let step0 = trainer.step;
+    let mut last = StepStats::default();
+    while trainer.step < cfg.iterations {
+        let ts = Instant::now();
+        let s = trainer.train_step(backend, &data)?;
+        curve.push(curve_line(&s, ts.elapsed().as_secs_f64()));
+        let its = (trainer.step - step0) as f64 / t_loop.elapsed().as_secs_f64().max(1e-9);
+        pb.set_position(trainer.step);
+        pb.set_message(format!("loss {:.4} (rgb {:.4} eik {:.4} mask {:.4}) psnr {:.1} {:.2} it/s", s.loss, s.rgb, s.eikonal, s.mask, s.psnr, its));
+        ctx.emit("progress", serde_json::json!({ "stage": "geometry", "iterations": cfg.iterations, "it_per_s": its, "skipped": trainer.skipped, "stats": s }));
+        last = s;
+        let interrupted = stop.load(Ordering::SeqCst);
+        if trainer.step % cfg.checkpoint_every == 0 || trainer.step == cfg.iterations || interrupted {
+            trainer.save(run_dir, &key)?;
+            write_curve(run_dir, &curve)?;
+        }
+        if interrupted {
+            pb.abandon();
+            anyhow::bail!(
+                "interrupted at step {} of {}: checkpoint written to {}; continue with `pii-bake train {} --out {} --resume`",
+                trainer.step,
+                cfg.iterations,
+                run_dir.join(CHECKPOINT).display(),
+                scene_path.display(),
+                run_dir.display()
+            );
+        }
+    }
+    pb.finish_and_clear();
+    if trainer.step == step0 {
+        trainer.save(run_dir, &key)?;
+        write_curve(run_dir, &curve)?;
+    }
+    let seconds_train = t_loop.elapsed().as_secs_f64();
+    let its = (trainer.step - step0) as f64 / seconds_train.max(1e-9);
+
+    // Held-out views (or, without them, a few training views), rendered at a bounded size.
+    let t_eval = Instant::now();
+    let eval_views: Vec<&View> = if held.is_empty() { views.iter().step_by((views.len() / 4).max(1)).take(4).copied().collect() } else { held.iter().take(8).copied().collect() };
+    let ev = evaluate_views(backend, &trainer.model, &cfg.trace, &eval_views, 128 * 128)?;
+    let weak = ev.mask_iou < 0.8 || trainer.skipped * 10 > trainer.step.max(1);
+    let report = serde_json::json!({
+        "stage": "geometry",
+        "preset": cfg.preset,
+        "tracing": cfg.trace.mode,
+        "init": cfg.init,
+        "backend": backend.describe(),
+        "scene": { "path": scene_path.display().to_string(), "format": scene.format.name(), "train_views": views.len(), "held_out_views": held.len(), "key": key },
+        "sizes": cfg.sizes,
+        "config": cfg,
+        "steps": trainer.step,
+        "skipped_steps": trainer.skipped,
+        "last": last,
+        "it_per_s": its,
+        "hull_init": hull_report,
+        "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr": ev.psnr, "mask_iou": ev.mask_iou, "per_view": ev.per_view, "seconds": t_eval.elapsed().as_secs_f64() },
+        "weak_result": weak,
+        "seconds": { "init": seconds_init, "train": seconds_train, "total": t_total.elapsed().as_secs_f64() },
+    });
+    crate::util::atomic_write(&run_dir.join("train_report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    ctx.say(format!(
+        "stage 1: {} steps ({} skipped) at {:.2} it/s; {}: PSNR {:.2} dB, mask IoU {:.3}{}",
+        trainer.step,
+        trainer.skipped,
+        its,
+        if held.is_empty() { "training views" } else { "held-out views" },
+        ev.psnr,
+        ev.mask_iou,
+        if weak { " — WEAK RESULT: check masks, poses and view count" } else { "" }
+    ));
+    Ok(Stage1Run { trainer, run_scene, report })
+}
+
+/// Held-out metrics of a stage-1 model.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct ViewEval {
+    pub psnr: f64,
+    pub mask_iou: f64,
+    pub per_view: Vec<serde_json::Value>,
+}
+
+/// Render `views` (each downscaled to at most `max_pixels`) and compare with their photos:
+/// PSNR (sRGB) inside the photo's mask, IoU of the hit mask against the photo's mask.
+pub fn evaluate_views(backend: &Backend, model: &Model, tc: &TraceConfig, views: &[&View], max_pixels: usize) -> Result<ViewEval, BackendError> {
+    let mut out = ViewEval::default();
+    let (mut se, mut w, mut inter, mut uni) = (0.0f64, 0.0f64, 0usize, 0usize);
+    for v in views {
+        let c = &v.camera;
+        let step = (((c.width * c.height) as f64 / max_pixels as f64).sqrt().ceil() as usize).max(1);
+        let mut rays = Rays::default();
+        let mut idx = Vec::new();
+        for y in (0..c.height).step_by(step) {
+            for x in (0..c.width).step_by(step) {
+                let (o, d) = c.ray(x as f64 + 0.5, y as f64 + 0.5);
+                rays.origins.push(o.as_vec3().to_array());
+                rays.dirs.push(d.as_vec3().to_array());
+                idx.push(y * c.width + x);
+            }
+        }
+        let img = render_rays(backend, model, tc, &rays)?;
+        let (mut vse, mut vw, mut vi, mut vu) = (0.0f64, 0.0f64, 0usize, 0usize);
+        for (k, &p) in idx.iter().enumerate() {
+            let m = v.mask.as_ref().map(|m| m[p]).unwrap_or(1.0);
+            let gt = [0, 1, 2].map(|ch| crate::image_io::linear_to_srgb(v.image.data[p * v.image.channels + ch].clamp(0.0, 1.0)));
+            let (hit, col) = img[k];
+            let col = if hit { col } else { [0.0; 3] };
+            if m >= 0.5 {
+                for ch in 0..3 {
+                    vse += ((col[ch] - gt[ch]) as f64).powi(2);
+                }
+                vw += 3.0;
+            }
+            let inm = m >= 0.5;
+            vi += (hit && inm) as usize;
+            vu += (hit || inm) as usize;
+        }
+        let psnr = crate::eval::psnr_from_mse(vse / vw.max(1.0));
+        let iou = vi as f64 / vu.max(1) as f64;
+        out.per_view.push(serde_json::json!({ "view": v.name, "psnr": psnr, "mask_iou": iou, "pixels": idx.len() }));
+        se += vse;
+        w += vw;
+        inter += vi;
+        uni += vu;
+    }
+    out.psnr = crate::eval::psnr_from_mse(se / w.max(1.0));
+    out.mask_iou = inter as f64 / uni.max(1) as f64;
+    Ok(out)
+}
+
+/// Trace and shade rays: (hit, sRGB colour) per ray, in chunks.
+pub fn render_rays(backend: &Backend, model: &Model, tc: &TraceConfig, rays: &Rays) -> Result<Vec<(bool, [f32; 3])>, BackendError> {
+    let mut out = Vec::with_capacity(rays.len());
+    let chunk = 8192;
+    for start in (0..rays.len()).step_by(chunk) {
+        let end = (start + chunk).min(rays.len());
+        let r = Rays { origins: rays.origins[start..end].to_vec(), dirs: rays.dirs[start..end].to_vec() };
+        let f = |p: &[f32]| model.sdf(backend, p);
+        let tr = trace(&f, &r, tc)?;
+        let hits: Vec<usize> = (0..r.len()).filter(|&i| tr.hit[i]).collect();
+        let x: Vec<[f32; 3]> = hits.iter().map(|&i| tr.points[i]).collect();
+        let d: Vec<[f32; 3]> = hits.iter().map(|&i| r.dirs[i]).collect();
+        let c = model.colour(backend, &x, &d)?;
+        let mut res = vec![(false, [0.0f32; 3]); r.len()];
+        for (k, &i) in hits.iter().enumerate() {
+            res[i] = (true, c[k]);
+        }
+        out.extend(res);
+    }
+    Ok(out)
+}
+
+pub fn run(args: &TrainArgs, ctx: &Context) -> anyhow::Result<()> {
+    let backend = ctx.backend()?;
+    match args.stage {
+        Stage::Geometry => {
+            let r = train_stage1(&args.scene, &args.opts, &args.out, args.resume, &backend, ctx)?;
+            ctx.emit("train", r.report);
+            ctx.say(format!("run written to {} (export it with `pii-bake export --run {} --out <asset-dir>`)", args.out.display(), args.out.display()));
+            Ok(())
+        }
+    }
+}
+
+// ---- export of a trained run --------------------------------------------------------------
+
+fn rot(m: &DMat3, v: [f32; 3]) -> [f32; 3] {
+    (*m * DVec3::from(v.map(f64::from))).as_vec3().to_array()
+}
+
+/// The trained SDF as the asset back end's field, in the asset frame.
+pub struct TrainedSdf<'a> {
+    pub model: &'a Model,
+    pub rotation: DMat3,
+    pub bounds: Aabb,
+}
+
+impl<'a> TrainedSdf<'a> {
+    /// Wrap `model`; the mesh box is the box of the inside nodes of a coarse grid, plus a margin.
+    pub fn new(backend: &Backend, model: &'a Model, rotation: DMat3) -> Result<Self, BackendError> {
+        let res = 64usize;
+        let h = 2.0 / res as f32;
+        let mut pts = Vec::with_capacity(res * res * res * 3);
+        for k in 0..res {
+            for j in 0..res {
+                for i in 0..res {
+                    pts.extend([-1.0 + (i as f32 + 0.5) * h, -1.0 + (j as f32 + 0.5) * h, -1.0 + (k as f32 + 0.5) * h]);
+                }
+            }
+        }
+        let v = model.sdf(backend, &pts)?;
+        let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+        for (n, &s) in v.iter().enumerate() {
+            if s < 0.0 {
+                for a in 0..3 {
+                    lo[a] = lo[a].min(pts[3 * n + a]);
+                    hi[a] = hi[a].max(pts[3 * n + a]);
+                }
+            }
+        }
+        if !lo[0].is_finite() {
+            return Err(BackendError::Config("the trained SDF has no inside anywhere in the unit cube (an empty model)".into()));
+        }
+        let margin = 2.0 * h;
+        let (mut blo, mut bhi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+        for corner in 0..8 {
+            let p = [0, 1, 2].map(|a| if corner >> a & 1 == 1 { (hi[a] + margin).min(1.05) } else { (lo[a] - margin).max(-1.05) });
+            let q = rot(&rotation, p);
+            for a in 0..3 {
+                blo[a] = blo[a].min(q[a]);
+                bhi[a] = bhi[a].max(q[a]);
+            }
+        }
+        Ok(Self { model, rotation, bounds: Aabb { min: blo, max: bhi } })
+    }
+}
+
+impl MeshSdf for TrainedSdf<'_> {
+    fn name(&self) -> String {
+        format!("trained SDF ({} preset, {} parameters)", if self.model.field.config.weight_norm { "paper" } else { "fast" }, self.model.sdf_params.len())
+    }
+    fn bounds(&self) -> Aabb {
+        self.bounds
+    }
+    fn eval(&self, backend: &Backend, points: &[[f32; 3]]) -> Result<SdfSamples, BackendError> {
+        let rt = self.rotation.transpose();
+        let local: Vec<[f32; 3]> = points.iter().map(|&q| rot(&rt, q)).collect();
+        let mut values = Vec::with_capacity(points.len());
+        let mut gradients = Vec::with_capacity(points.len());
+        for c in local.chunks(1 << 14) {
+            let o = self.model.field.eval_with_gradient(backend, &self.model.sdf_params, bytemuck::cast_slice(c))?;
+            values.extend(o.sdf);
+            gradients.extend(o.gradient.chunks_exact(3).map(|g| rot(&self.rotation, [g[0], g[1], g[2]])));
+        }
+        Ok(SdfSamples { values, gradients })
+    }
+    fn eval_grid(&self, backend: &Backend, grid: &crate::mesh::grid::GridSpec) -> Result<Vec<f32>, BackendError> {
+        let [nx, ny, nz] = grid.dims;
+        let rt = self.rotation.transpose();
+        let mut pts = Vec::with_capacity(nx * ny * nz * 3);
+        for z in 0..nz {
+            for y in 0..ny {
+                for x in 0..nx {
+                    pts.extend(rot(&rt, grid.node(x, y, z)));
+                }
+            }
+        }
+        self.model.sdf(backend, &pts)
+    }
+}
+
+/// The radiance net seen head-on (view direction = the normal), sRGB → linear: a *radiance
+/// preview* with the photos' lighting baked in; roughness constant. Stage 2 replaces it.
+pub struct RadiancePreview<'a> {
+    pub model: &'a Model,
+    pub rotation: DMat3,
+    pub roughness: f32,
+    pub feature: f32,
+}
+
+impl MaterialField for RadiancePreview<'_> {
+    fn name(&self) -> String {
+        format!("radiance preview (stage-1 radiance net seen along the normal: lighting baked in), constant roughness {}", self.roughness)
+    }
+    fn eval(&self, backend: &Backend, points: &[[f32; 3]], normals: &[[f32; 3]]) -> Result<MaterialSamples, BackendError> {
+        let rt = self.rotation.transpose();
+        let x: Vec<[f32; 3]> = points.iter().map(|&q| rot(&rt, q)).collect();
+        // The radiance net's view input is −ray direction: looking along −n sees the point head-on.
+        let d: Vec<[f32; 3]> = normals.iter().map(|&n| rot(&rt, [-n[0], -n[1], -n[2]])).collect();
+        let mut albedo = Vec::with_capacity(points.len());
+        for (xc, dc) in x.chunks(1 << 14).zip(d.chunks(1 << 14)) {
+            let c = self.model.colour(backend, xc, dc)?;
+            albedo.extend(c.into_iter().map(|c| c.map(|v| crate::image_io::srgb_to_linear(v.clamp(0.0, 1.0)))));
+        }
+        Ok(MaterialSamples { albedo, roughness: vec![self.roughness; points.len()] })
+    }
+    fn feature_size(&self) -> Option<f32> {
+        Some(self.feature)
+    }
+}
+
+/// Read a run folder's scene record.
+pub fn read_run_scene(run_dir: &Path) -> Result<RunScene, DataError> {
+    let p = run_dir.join(RUN_SCENE);
+    let s = std::fs::read_to_string(&p).map_err(|e| DataError::new(&p, format!("cannot read the run's scene record: {e} (is this a `pii-bake train` run folder?)")))?;
+    serde_json::from_str(&s).map_err(|e| DataError::new(&p, format!("not a run scene record: {e}")))
+}
+
+/// Export a trained stage-1 model through `export_asset`.
+pub fn export_stage1(backend: &Backend, trainer: &Trainer, rs: &RunScene, asset: &AssetArgs, default_name: &str, ctx: &Context) -> anyhow::Result<ExportReport> {
+    let rotation = DMat3::from_cols_array(&rs.rotation);
+    let cfg = &trainer.cfg;
+    let sdf = TrainedSdf::new(backend, &trainer.model, rotation).context("meshing the trained SDF")?;
+    let material = RadiancePreview { model: &trainer.model, rotation, roughness: 0.5, feature: 16.0 * cfg.sizes.pixel_footprint };
+    let resolution = asset.resolution.unwrap_or(cfg.sizes.mesh_resolution);
+    let ecfg = ExportConfig {
+        name: asset.name.clone().unwrap_or_else(|| default_name.to_string()),
+        mesh: MeshConfig { resolution, error_bound: asset.error_bound, ..Default::default() },
+        texture: asset.texture,
+        metres_per_unit: (asset.metres_per_unit / rs.scale) as f32,
+        usdz: asset.usdz,
+        provenance: serde_json::json!({
+            "method": "stage 1 (trained SDF + radiance preview); light/material not yet separated",
+            "scene": rs.scene.display().to_string(),
+            "format": rs.format,
+            "preset": cfg.preset,
+            "tracing": cfg.trace.mode,
+            "steps": trainer.step,
+        }),
+        ..Default::default()
+    };
+    let env = super::preview::uniform_environment();
+    let t = Instant::now();
+    let report = crate::export::export_asset(backend, &sdf, &material, Some(&env), &ecfg, &asset.out)?;
+    ctx.say(format!(
+        "export: {} triangles (error bound {:.4} normalised units, watertight {}), {} UV charts, {}² textures, files in {} [{:.2} s]",
+        report.mesh.triangles,
+        report.mesh.error_bound,
+        report.mesh.watertight,
+        report.uv_charts,
+        report.texture_size,
+        asset.out.display(),
+        t.elapsed().as_secs_f64()
+    ));
+    Ok(report)
+}
+
+/// `export --run`: load the run's checkpoint and export it.
+pub fn export_run(run_dir: &Path, asset: &AssetArgs, ctx: &Context) -> anyhow::Result<ExportReport> {
+    crate::export::check_writable(&asset.out)?;
+    let rs = read_run_scene(run_dir)?;
+    let (trainer, key) = Trainer::load(run_dir, None)?;
+    if key != rs.key {
+        return Err(DataError::new(&run_dir.join(CHECKPOINT), format!("checkpoint scene {key} does not match the run's scene record {}", rs.key)).into());
+    }
+    let backend = ctx.backend()?;
+    let name = crate::train::preview::name_from_path(&rs.scene);
+    export_stage1(&backend, &trainer, &rs, asset, &name, ctx)
+}
+
+/// `bake` with a training preset: stage 1 into the run folder (resuming one that is there), then
+/// the export, the ground-truth comparison when the scene has one, and `bake_report.json`.
+pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::Result<()> {
+    let t_total = Instant::now();
+    let backend = ctx.backend()?;
+    let preset = match args.preset {
+        super::preview::BakePreset::Paper => Preset::Paper,
+        _ => Preset::Fast,
+    };
+    if !(0.0..=1.0).contains(&args.roughness) {
+        anyhow::bail!("--roughness must be in [0, 1], got {}", args.roughness);
+    }
+    let run_dir = args.run.clone().unwrap_or_else(|| args.asset.out.join("run"));
+    let opts = TrainOptions {
+        preset,
+        tracing: args.tracing,
+        init: args.init,
+        iterations: args.iterations,
+        rays: args.rays,
+        seed: args.seed,
+        checkpoint_every: None,
+        downscale: args.downscale.max(1),
+        init_steps: args.init_steps,
+    };
+    ctx.say(format!(
+        "bake: stage 1 (trained SDF geometry, {} preset) + a radiance preview for textures (the photos' lighting is not removed yet: stage 2 is not implemented)",
+        preset.name()
+    ));
+    let run = train_stage1(&args.scene, &opts, &run_dir, true, &backend, ctx)?;
+    let name = args.asset.name.clone().unwrap_or_else(|| super::preview::name_from_path(&args.scene));
+    let t = Instant::now();
+    let mut exp = run.trainer.cfg.clone();
+    exp.sizes.mesh_resolution = args.asset.resolution.unwrap_or(exp.sizes.mesh_resolution);
+    let report = export_stage1(&backend, &run.trainer, &run.run_scene, &args.asset, &name, ctx)?;
+    let seconds_export = t.elapsed().as_secs_f64();
+    let scene = crate::scene::load(&args.scene, &ReadOptions { downscale: args.downscale.max(1) })?;
+    let gt = super::preview::ground_truth_metrics(
+        &args.scene,
+        scene.normalisation.center,
+        DMat3::from_cols_array(&run.run_scene.rotation),
+        args.asset.metres_per_unit,
+        &report,
+        ctx,
+    )?;
+    let summary = serde_json::json!({
+        "method": format!("stage1-{}", preset.name()),
+        "what": {
+            "geometry": "trained SDF (stage 1), marching cubes",
+            "albedo": "radiance preview: the stage-1 radiance net seen along the normal (lighting baked in, not de-lit)",
+            "roughness": format!("constant {}", args.roughness),
+            "environment": "uniform white (radiance 1)",
+            "not_done": "stage 2 (environment, material, indirect light) is not implemented: the textures hold lit colour",
+        },
+        "scene": run.report["scene"].clone(),
+        "training": run.report,
+        "run": run_dir.display().to_string(),
+        "seconds": { "train": t_total.elapsed().as_secs_f64() - seconds_export, "export": seconds_export, "total": t_total.elapsed().as_secs_f64() },
+        "export": report,
+        "ground_truth": gt,
+    });
+    crate::util::atomic_write(&args.asset.out.join("bake_report.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
+    ctx.emit("bake", summary);
+    ctx.say(format!(
+        "wrote {}/{}.glb, asset.usda, env.exr, bake_report.json in {:.1} s",
+        args.asset.out.display(),
+        name,
+        t_total.elapsed().as_secs_f64()
+    ));
+    Ok(())
+}

@@ -1,0 +1,830 @@
+//! Stage 1: geometry from photos. An SDF field and a radiance net trained from posed, masked
+//! photos (IDR), on either compute backend through one loop.
+//!
+//! One iteration, `rays` pixels drawn uniformly over the training views (the draw is seeded by
+//! `(seed, step)`, so a resumed run draws what an uninterrupted one would):
+//! 1. trace every ray through the current field ([`crate::render::trace`], no gradient);
+//! 2. *surface rays* (hit and inside the mask): colour `c = R(x, PE4(−v), ∇f(x), feature(x))`,
+//!    L1 against the photo (sRGB values, as IDR);
+//! 3. *mask rays* (the others): BCE on `sigmoid(−α·f(x_min))` against the mask, `x_min` the
+//!    min-SDF point along the ray (from the tracer's sampler, or sampled along the segment for
+//!    hits outside the mask), weight `mask_weight/α`, α doubled at fixed fractions of the run;
+//! 4. eikonal `(|∇f| − 1)²` at uniform points in the bounding cube and at the surface points;
+//! 5. one batched first-order backward through the field ([`SdfField::value_and_grad`]: normals
+//!    are central differences, so no second-order pass is needed) and the radiance net, then Adam.
+//!
+//! The surface point is differentiable by implicit differentiation,
+//! `x(θ) = x0 − v·(f(x0;θ) − f(x0;θ0))/(∇f(x0)·v)`: the colour's total derivative along the ray,
+//! `∂c/∂x·v` (through the radiance net's position input, the feature and the normal), is taken by
+//! a central difference of the whole forward at `x0 ± ε v`, and `dL/dc · ∂c/∂x·v · (−1/(∇f·v))`
+//! is added to `dL/df(x0)`. Everything stays first-order, and the whole pixel's gradient matches
+//! central differences of re-traced renders (tested).
+//!
+//! Parameters live on the host (the field's encoding runs through the cpu twins of `nn::encoding`
+//! and uploads the MLP parameters per evaluation); every MLP forward/backward runs on the chosen
+//! backend. Adam runs on the host tensors; a step whose gradient holds NaN/Inf is skipped and
+//! counted, never applied.
+
+use std::path::{Path, PathBuf};
+
+use rand::Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::backend::{Backend, BackendError};
+use crate::nn::adam::{AdamConfig, AdamItem, AdamState};
+use crate::nn::encoding::{encoding_forward_cpu, EncodingConfig};
+use crate::nn::field::{FieldEncoding, FieldOutputGrads, FieldOutputs, SdfField, SdfFieldConfig};
+use crate::nn::mlp::{Activation, Init, Mlp, MlpConfig};
+use crate::nn::params::ParamStore;
+use crate::render::{min_sdf_along, sphere_interval, trace, Rays, TraceConfig, TraceMode};
+use crate::scene::{Camera, View};
+use crate::util::DataError;
+
+/// Speed/accuracy preset.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Preset {
+    /// Hash grid + 2×64 SDF MLP, 2×64 radiance net: minutes on a CPU, seconds on a GPU.
+    Fast,
+    /// The paper's networks: PE6 + 8×512 SDF (skip, weight norm), 4×512 radiance net.
+    Paper,
+}
+
+impl Preset {
+    pub fn name(self) -> &'static str {
+        match self {
+            Preset::Fast => "fast",
+            Preset::Paper => "paper",
+        }
+    }
+}
+
+/// How the SDF starts.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum InitMode {
+    /// Geometric (sphere) initialisation, as the paper.
+    Sphere,
+    /// Sphere init, then fit to the visual hull's signed distance before photometric training.
+    Hull,
+}
+
+/// Sizes the scene decides, and why (reported).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SceneSizes {
+    /// Mean photo pixel footprint at the object (normalised units).
+    pub pixel_footprint: f32,
+    /// Finest hash-grid resolution (cells over [-1, 1]): one cell per pixel footprint, clamped.
+    pub grid_finest: u32,
+    pub grid_log2_table: u32,
+    /// Visual hull resolution for the hull init.
+    pub hull_resolution: usize,
+    /// Marching grid nodes along the longest side at export.
+    pub mesh_resolution: usize,
+    pub train_views: usize,
+    pub train_pixels: usize,
+    pub held_out_views: usize,
+}
+
+/// Everything that defines a stage-1 run (saved beside every checkpoint).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Stage1Config {
+    pub preset: Preset,
+    pub field: SdfFieldConfig,
+    pub radiance_widths: Vec<usize>,
+    /// Frequencies of the view-direction encoding (input included).
+    pub view_freqs: u32,
+    pub trace: TraceConfig,
+    pub init: InitMode,
+    pub hull_fit_steps: u64,
+    pub rays: usize,
+    pub iterations: u64,
+    pub lr_field: f32,
+    pub lr_radiance: f32,
+    /// Learning rate at the end of the run relative to the start (exponential decay).
+    pub lr_final_factor: f32,
+    pub eikonal_weight: f32,
+    pub eikonal_points: usize,
+    pub mask_weight: f32,
+    pub alpha_init: f32,
+    /// α doubles at these fractions of the run (IDR: 250/500/750/1000/1250 of 2000 epochs).
+    pub alpha_doublings: Vec<f32>,
+    /// Samples along a mask ray that hit outside the mask.
+    pub mask_samples: usize,
+    pub seed: u64,
+    pub checkpoint_every: u64,
+    pub downscale: usize,
+    pub sizes: SceneSizes,
+}
+
+impl Stage1Config {
+    /// The preset's configuration sized for `views` (the training views, normalised frame).
+    pub fn for_scene(preset: Preset, mode: TraceMode, init: InitMode, views: &[&View], held_out: usize, downscale: usize) -> Self {
+        let footprint = pixel_footprint(views);
+        let grid_finest = ((2.0 / footprint.max(1e-6)).round() as u32).clamp(64, 1024);
+        let grid_log2_table = ((2.0 * (grid_finest as f64).powi(2)).log2().ceil() as u32).clamp(14, 19);
+        let hull_resolution = (((2.0 / footprint.max(1e-6)) / 2.0).round() as usize).clamp(64, 192);
+        let mesh_resolution = (((1.6 / footprint.max(1e-6)) / 1.5).round() as usize).clamp(96, 384);
+        let sizes = SceneSizes {
+            pixel_footprint: footprint,
+            grid_finest,
+            grid_log2_table,
+            hull_resolution,
+            mesh_resolution,
+            train_views: views.len(),
+            train_pixels: views.iter().map(|v| v.camera.width * v.camera.height).sum(),
+            held_out_views: held_out,
+        };
+        let trace = TraceConfig::new(mode);
+        match preset {
+            Preset::Fast => {
+                let mut field = SdfFieldConfig::fast();
+                let levels = 16u32;
+                let base = 16u32;
+                field.encoding = FieldEncoding::HashGrid {
+                    levels: levels as usize,
+                    features_per_level: 2,
+                    log2_table_size: grid_log2_table,
+                    base_resolution: base,
+                    growth: ((grid_finest as f32 / base as f32).ln() / (levels - 1) as f32).exp(),
+                };
+                field.grad_step = (0.5 * footprint).clamp(5e-4, 5e-3);
+                Self {
+                    preset,
+                    field,
+                    radiance_widths: vec![64, 64],
+                    view_freqs: 4,
+                    trace,
+                    init,
+                    hull_fit_steps: 300,
+                    rays: 1024,
+                    iterations: 1000,
+                    lr_field: 5e-3,
+                    lr_radiance: 5e-3,
+                    lr_final_factor: 0.1,
+                    eikonal_weight: 0.1,
+                    eikonal_points: 512,
+                    mask_weight: 100.0,
+                    alpha_init: 50.0,
+                    alpha_doublings: vec![0.125, 0.25, 0.375, 0.5, 0.625],
+                    mask_samples: 32,
+                    seed: 0,
+                    checkpoint_every: 100,
+                    downscale,
+                    sizes,
+                }
+            }
+            Preset::Paper => Self {
+                preset,
+                field: SdfFieldConfig::paper(),
+                radiance_widths: vec![512; 4],
+                view_freqs: 4,
+                trace,
+                init,
+                hull_fit_steps: 200,
+                rays: 2048,
+                iterations: 2000,
+                lr_field: 1e-4,
+                lr_radiance: 1e-4,
+                lr_final_factor: 0.25,
+                eikonal_weight: 0.1,
+                eikonal_points: 1024,
+                mask_weight: 100.0,
+                alpha_init: 50.0,
+                alpha_doublings: vec![0.125, 0.25, 0.375, 0.5, 0.625],
+                mask_samples: 100,
+                seed: 0,
+                checkpoint_every: 50,
+                downscale,
+                sizes,
+            },
+        }
+    }
+
+    pub fn validate(&self) -> Result<(), BackendError> {
+        self.trace.validate()?;
+        let bad = |m: &str| Err(BackendError::Config(format!("stage 1: {m}")));
+        if self.rays == 0 || self.iterations == 0 {
+            return bad("rays and iterations must be > 0");
+        }
+        if !(self.lr_field.is_finite() && self.lr_field > 0.0 && self.lr_radiance.is_finite() && self.lr_radiance > 0.0) {
+            return bad("learning rates must be > 0");
+        }
+        if self.checkpoint_every == 0 {
+            return bad("checkpoint interval must be > 0");
+        }
+        Ok(())
+    }
+
+    /// α at `step`.
+    pub fn alpha_at(&self, step: u64) -> f32 {
+        let frac = step as f32 / self.iterations.max(1) as f32;
+        self.alpha_init * 2f32.powi(self.alpha_doublings.iter().filter(|&&d| frac >= d).count() as i32)
+    }
+
+    /// Learning-rate factor at `step` (exponential from 1 to `lr_final_factor`).
+    pub fn lr_factor(&self, step: u64) -> f32 {
+        let frac = (step as f32 / self.iterations.max(1) as f32).min(1.0);
+        self.lr_final_factor.powf(frac)
+    }
+
+    pub fn radiance_mlp(&self) -> MlpConfig {
+        let view_dim = 3 * (1 + 2 * self.view_freqs as usize);
+        MlpConfig {
+            in_dim: 3 + view_dim + 3 + self.field.feature_dim,
+            widths: self.radiance_widths.clone(),
+            out_dim: 3,
+            activation: Activation::Relu,
+            output_activation: Activation::Sigmoid,
+            skip_layers: vec![],
+            weight_norm: false,
+        }
+    }
+}
+
+/// Mean photo pixel footprint (normalised units) at the distance of the scene centre.
+pub fn pixel_footprint(views: &[&View]) -> f32 {
+    if views.is_empty() {
+        return 0.01;
+    }
+    (views.iter().map(|v| v.camera.center().length() / v.camera.fx.max(1e-9)).sum::<f64>() / views.len() as f64) as f32
+}
+
+/// One training view: camera, sRGB colour and mask.
+#[derive(Clone, Debug)]
+pub struct TrainView {
+    pub camera: Camera,
+    /// sRGB-encoded RGB, 3 per pixel.
+    pub rgb: Vec<f32>,
+    pub mask: Vec<f32>,
+    pub path: PathBuf,
+}
+
+/// The pixels training draws from.
+#[derive(Clone, Debug)]
+pub struct TrainData {
+    pub views: Vec<TrainView>,
+    offsets: Vec<usize>,
+}
+
+/// A batch of pixels.
+#[derive(Clone, Debug, Default)]
+pub struct Batch {
+    pub rays: Rays,
+    pub rgb: Vec<[f32; 3]>,
+    pub mask: Vec<f32>,
+}
+
+impl TrainData {
+    /// Views with masks; the error names the first image without a mask, and a view whose
+    /// camera does not see the bounding sphere.
+    pub fn new(views: &[&View], bound: f32) -> Result<Self, DataError> {
+        let mut out = Vec::with_capacity(views.len());
+        for v in views {
+            let Some(mask) = &v.mask else {
+                return Err(DataError::new(
+                    &v.image_path,
+                    "no mask for this view: stage 1 needs an object mask per photo (an alpha channel, or a mask image in the scene's mask folder: mask/, masks/ or per-frame mask_path)",
+                ));
+            };
+            let c = &v.camera;
+            // The camera must see the bounding sphere: test a coarse grid of its pixels.
+            let mut sees = false;
+            'grid: for j in 0..9 {
+                for i in 0..9 {
+                    let (o, d) = c.ray((i as f64 + 0.5) * c.width as f64 / 9.0, (j as f64 + 0.5) * c.height as f64 / 9.0);
+                    if sphere_interval(o.as_vec3().to_array(), d.as_vec3().to_array(), bound).is_some() {
+                        sees = true;
+                        break 'grid;
+                    }
+                }
+            }
+            if !sees {
+                return Err(DataError::new(
+                    &v.image_path,
+                    "this camera does not see the object's bounding sphere (check the poses and the scene normalisation)",
+                ));
+            }
+            let rgb: Vec<f32> = v.image.rgb().iter().map(|&x| crate::image_io::linear_to_srgb(x.clamp(0.0, 1.0))).collect();
+            out.push(TrainView { camera: c.clone(), rgb, mask: mask.clone(), path: v.image_path.clone() });
+        }
+        if out.is_empty() {
+            return Err(DataError::new(Path::new("."), "no training views"));
+        }
+        let mut offsets = vec![0usize];
+        for v in &out {
+            offsets.push(offsets.last().unwrap() + v.camera.width * v.camera.height);
+        }
+        Ok(Self { views: out, offsets })
+    }
+
+    pub fn pixels(&self) -> usize {
+        *self.offsets.last().unwrap()
+    }
+
+    /// `n` pixels drawn uniformly with `rng`.
+    pub fn sample(&self, rng: &mut impl Rng, n: usize) -> Batch {
+        let total = self.pixels();
+        let mut b = Batch::default();
+        for _ in 0..n {
+            let g = rng.random_range(0..total);
+            let vi = self.offsets.partition_point(|&o| o <= g) - 1;
+            let v = &self.views[vi];
+            let p = g - self.offsets[vi];
+            let (x, y) = (p % v.camera.width, p / v.camera.width);
+            let (o, d) = v.camera.ray(x as f64 + 0.5, y as f64 + 0.5);
+            b.rays.origins.push(o.as_vec3().to_array());
+            b.rays.dirs.push(d.as_vec3().to_array());
+            b.rgb.push([v.rgb[3 * p], v.rgb[3 * p + 1], v.rgb[3 * p + 2]]);
+            b.mask.push(v.mask[p]);
+        }
+        b
+    }
+}
+
+/// The two networks and their parameters.
+#[derive(Debug)]
+pub struct Model {
+    pub field: SdfField,
+    pub radiance: Mlp,
+    pub view_encoding: EncodingConfig,
+    pub sdf_params: Vec<f32>,
+    pub radiance_params: Vec<f32>,
+}
+
+/// What one forward of the radiance net on surface points needs.
+struct SurfaceInput {
+    input: Vec<f32>,
+}
+
+impl Model {
+    pub fn new(cfg: &Stage1Config) -> Result<Self, BackendError> {
+        let field = SdfField::new(cfg.field.clone())?;
+        let radiance = Mlp::new(cfg.radiance_mlp())?;
+        let sdf_params = field.init(cfg.seed);
+        let radiance_params = radiance.init(Init::Default, cfg.seed.wrapping_add(17));
+        Ok(Self { field, radiance, view_encoding: EncodingConfig::frequency(cfg.view_freqs), sdf_params, radiance_params })
+    }
+
+    /// SDF values at flattened points.
+    pub fn sdf(&self, backend: &Backend, pts: &[f32]) -> Result<Vec<f32>, BackendError> {
+        // Large batches in slices keep the MLP's working set bounded.
+        const CHUNK: usize = 1 << 16;
+        let mut out = Vec::with_capacity(pts.len() / 3);
+        for c in pts.chunks(3 * CHUNK) {
+            out.extend(self.field.sdf(backend, &self.sdf_params, c)?);
+        }
+        Ok(out)
+    }
+
+    fn radiance_input(&self, x: &[[f32; 3]], dirs: &[[f32; 3]], o: &FieldOutputs, range: std::ops::Range<usize>) -> SurfaceInput {
+        let fd = self.field.config.feature_dim;
+        let view: Vec<f32> = dirs.iter().flat_map(|d| [-d[0], -d[1], -d[2]]).collect();
+        let venc = encoding_forward_cpu(&self.view_encoding, &[], &view, 3);
+        let vd = venc.len() / dirs.len().max(1);
+        let mut input = Vec::with_capacity(x.len() * self.radiance.in_dim());
+        for (k, i) in range.enumerate() {
+            input.extend_from_slice(&x[k]);
+            input.extend_from_slice(&venc[k * vd..(k + 1) * vd]);
+            input.extend_from_slice(&o.gradient[3 * i..3 * i + 3]);
+            input.extend_from_slice(&o.feature[fd * i..fd * (i + 1)]);
+        }
+        SurfaceInput { input }
+    }
+
+    /// Colour (sRGB, [0, 1]) at surface points seen along `dirs`: forward only.
+    pub fn colour(&self, backend: &Backend, x: &[[f32; 3]], dirs: &[[f32; 3]]) -> Result<Vec<[f32; 3]>, BackendError> {
+        if x.is_empty() {
+            return Ok(Vec::new());
+        }
+        let o = self.field.eval_with_gradient(backend, &self.sdf_params, bytemuck::cast_slice(x))?;
+        let si = self.radiance_input(x, dirs, &o, 0..x.len());
+        let fwd = backend.mlp_forward(&self.radiance, &backend.upload(&self.radiance_params), &backend.from_vec(si.input), false)?;
+        let out = backend.to_vec(&fwd.output)?;
+        Ok(out.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
+    }
+}
+
+/// Loss parts and figures of one step.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct StepStats {
+    pub step: u64,
+    pub loss: f64,
+    pub rgb: f64,
+    pub eikonal: f64,
+    pub mask: f64,
+    /// PSNR (sRGB) on the surface rays of the batch.
+    pub psnr: f64,
+    pub surface_rays: usize,
+    pub mask_rays: usize,
+    pub alpha: f32,
+    pub lr_field: f32,
+    pub applied: bool,
+    pub grad_norm: f64,
+    pub field_evaluations: usize,
+}
+
+/// The gradient of one step's loss (and its parts), before the optimiser.
+#[derive(Clone, Debug)]
+pub struct StepGrad {
+    pub stats: StepStats,
+    pub d_sdf: Vec<f32>,
+    pub d_radiance: Vec<f32>,
+}
+
+/// Loss weights and switches of one step.
+#[derive(Clone, Copy, Debug)]
+pub struct LossSettings {
+    pub alpha: f32,
+    pub eikonal_weight: f32,
+    pub mask_weight: f32,
+    pub eikonal_points: usize,
+    pub mask_samples: usize,
+}
+
+/// Step size of the central difference for `∂c/∂x·v`.
+const RAY_EPS: f32 = 1e-3;
+
+/// The loss and its gradient for one batch (see the module docs). `extra_eikonal`: uniform
+/// points for the eikonal term (flattened).
+pub fn loss_and_grad(
+    backend: &Backend,
+    model: &Model,
+    trace_cfg: &TraceConfig,
+    batch: &Batch,
+    eik_points: &[[f32; 3]],
+    ls: &LossSettings,
+    jitter: f32,
+) -> Result<StepGrad, BackendError> {
+    let nrays = batch.rays.len();
+    let sdf_fn = |p: &[f32]| model.sdf(backend, p);
+    let tr = trace(&sdf_fn, &batch.rays, trace_cfg)?;
+    let mut evals = tr.evaluations;
+
+    // Partition rays.
+    let surf: Vec<usize> = (0..nrays).filter(|&i| tr.hit[i] && batch.mask[i] >= 0.5).collect();
+    let mask_rays: Vec<usize> = (0..nrays).filter(|&i| !(tr.hit[i] && batch.mask[i] >= 0.5)).collect();
+
+    // Min-SDF points: the tracer's for misses; sampled along the segment for hits outside the mask.
+    let mut x_min: Vec<[f32; 3]> = mask_rays.iter().map(|&i| tr.points[i]).collect();
+    let hit_out: Vec<usize> = (0..mask_rays.len()).filter(|&k| tr.hit[mask_rays[k]]).collect();
+    if !hit_out.is_empty() {
+        let mut r = Rays::default();
+        let (mut t0, mut t1) = (Vec::new(), Vec::new());
+        for &k in &hit_out {
+            let i = mask_rays[k];
+            let (o, d) = (batch.rays.origins[i], batch.rays.dirs[i]);
+            let (a, b) = sphere_interval(o, d, trace_cfg.bound).unwrap_or((0.0, 0.0));
+            r.origins.push(o);
+            r.dirs.push(d);
+            t0.push(a);
+            t1.push(b);
+        }
+        let (_, p) = min_sdf_along(&sdf_fn, &r, &t0, &t1, ls.mask_samples, jitter)?;
+        evals += r.len() * ls.mask_samples;
+        for (j, &k) in hit_out.iter().enumerate() {
+            x_min[k] = p[j];
+        }
+    }
+
+    // ∂c/∂x·v at the surface points: central difference of the whole forward along the ray.
+    let x0: Vec<[f32; 3]> = surf.iter().map(|&i| tr.points[i]).collect();
+    let dirs: Vec<[f32; 3]> = surf.iter().map(|&i| batch.rays.dirs[i]).collect();
+    let dc_dt: Vec<[f32; 3]> = if x0.is_empty() {
+        Vec::new()
+    } else {
+        let mut shifted = Vec::with_capacity(2 * x0.len());
+        let mut sdirs = Vec::with_capacity(2 * x0.len());
+        for sign in [1.0f32, -1.0] {
+            for (p, d) in x0.iter().zip(&dirs) {
+                shifted.push([p[0] + sign * RAY_EPS * d[0], p[1] + sign * RAY_EPS * d[1], p[2] + sign * RAY_EPS * d[2]]);
+                sdirs.push(*d);
+            }
+        }
+        let c = model.colour(backend, &shifted, &sdirs)?;
+        evals += 7 * shifted.len();
+        let s = x0.len();
+        (0..s).map(|k| [0, 1, 2].map(|ch| (c[k][ch] - c[s + k][ch]) / (2.0 * RAY_EPS))).collect()
+    };
+
+    // One batched value-and-grad over [surface; min-SDF; eikonal] points.
+    let (ns, nm, ne) = (x0.len(), x_min.len(), eik_points.len());
+    let mut pts: Vec<f32> = Vec::with_capacity(3 * (ns + nm + ne));
+    pts.extend(x0.iter().flatten());
+    pts.extend(x_min.iter().flatten());
+    pts.extend(eik_points.iter().flatten());
+    evals += 7 * (ns + nm + ne);
+    let inv_b = 1.0 / nrays.max(1) as f64;
+    let mut parts = (0.0f64, 0.0f64, 0.0f64, 0.0f64); // rgb, eik, mask, sq err
+    let mut d_radiance: Result<Vec<f32>, BackendError> = Ok(Vec::new());
+    let rad_params = backend.upload(&model.radiance_params);
+    let (_, d_sdf) = model.field.value_and_grad(backend, &model.sdf_params, &pts, |o: &FieldOutputs| {
+        let n = ns + nm + ne;
+        let fd = model.field.config.feature_dim;
+        let mut g = FieldOutputGrads { sdf: vec![0.0; n], gradient: vec![0.0; 3 * n], feature: vec![0.0; n * fd] };
+        // Colour.
+        if ns > 0 {
+            let si = model.radiance_input(&x0, &dirs, o, 0..ns);
+            let r = (|| {
+                let fwd = backend.mlp_forward(&model.radiance, &rad_params, &backend.from_vec(si.input), true)?;
+                let c = backend.to_vec(&fwd.output)?;
+                let mut dc = vec![0f32; 3 * ns];
+                for k in 0..ns {
+                    let gt = batch.rgb[surf[k]];
+                    let gdotv = {
+                        let gr = &o.gradient[3 * k..3 * k + 3];
+                        let d = dirs[k];
+                        gr[0] * d[0] + gr[1] * d[1] + gr[2] * d[2]
+                    };
+                    let mut s_term = 0.0f32;
+                    for ch in 0..3 {
+                        let e = c[3 * k + ch] - gt[ch];
+                        parts.0 += e.abs() as f64 * inv_b;
+                        parts.3 += (e * e) as f64;
+                        let dl = if e > 0.0 { inv_b as f32 } else if e < 0.0 { -(inv_b as f32) } else { 0.0 };
+                        dc[3 * k + ch] = dl;
+                        s_term += dl * dc_dt[k][ch];
+                    }
+                    // Implicit differentiation: dx/df(x0) = −v/(∇f·v). Grazing or back-facing
+                    // hits (∇f·v ≥ −0.05) pass no gradient through the point.
+                    if gdotv < -0.05 {
+                        g.sdf[k] += -s_term / gdotv;
+                    }
+                }
+                let grads = backend.mlp_backward(&model.radiance, &rad_params, &fwd, &backend.from_vec(dc))?;
+                let din = backend.to_vec(&grads.d_input)?;
+                let id = model.radiance.in_dim();
+                let vd = id - 6 - fd;
+                for k in 0..ns {
+                    let row = &din[k * id..(k + 1) * id];
+                    for a in 0..3 {
+                        g.gradient[3 * k + a] += row[3 + vd + a];
+                    }
+                    g.feature[k * fd..(k + 1) * fd].copy_from_slice(&row[6 + vd..]);
+                }
+                backend.to_vec(&grads.d_params)
+            })();
+            d_radiance = r;
+        }
+        // Mask BCE on sigmoid(−α f(x_min)), weight mask_weight/α, mean over all rays.
+        let alpha = ls.alpha as f64;
+        for k in 0..nm {
+            let i = ns + k;
+            let m = batch.mask[mask_rays[k]].clamp(0.0, 1.0) as f64;
+            let z = -alpha * o.sdf[i] as f64;
+            let bce = z.max(0.0) - z * m + (-z.abs()).exp().ln_1p();
+            let w = ls.mask_weight as f64 / alpha * inv_b;
+            parts.2 += w * bce;
+            let sig = 1.0 / (1.0 + (-z).exp());
+            g.sdf[i] += (w * (sig - m) * -alpha) as f32;
+        }
+        // Eikonal at surface and uniform points.
+        let eik_idx: Vec<usize> = (0..ns).chain(ns + nm..n).collect();
+        let inv_e = 1.0 / eik_idx.len().max(1) as f64;
+        for &i in &eik_idx {
+            let gr = &o.gradient[3 * i..3 * i + 3];
+            let len = ((gr[0] * gr[0] + gr[1] * gr[1] + gr[2] * gr[2]) as f64).sqrt();
+            parts.1 += ls.eikonal_weight as f64 * (len - 1.0).powi(2) * inv_e;
+            let c = (ls.eikonal_weight as f64 * 2.0 * (len - 1.0) / len.max(1e-12) * inv_e) as f32;
+            for a in 0..3 {
+                g.gradient[3 * i + a] += c * gr[a];
+            }
+        }
+        (parts.0 + parts.1 + parts.2, g)
+    })?;
+    let d_radiance = d_radiance?;
+    let d_radiance = if d_radiance.is_empty() { vec![0.0; model.radiance_params.len()] } else { d_radiance };
+    let mse = if ns > 0 { parts.3 / (3 * ns) as f64 } else { f64::NAN };
+    let stats = StepStats {
+        loss: parts.0 + parts.1 + parts.2,
+        rgb: parts.0,
+        eikonal: parts.1,
+        mask: parts.2,
+        psnr: if mse > 0.0 { -10.0 * mse.log10() } else { f64::NAN },
+        surface_rays: ns,
+        mask_rays: nm,
+        alpha: ls.alpha,
+        field_evaluations: evals,
+        ..Default::default()
+    };
+    Ok(StepGrad { stats, d_sdf, d_radiance })
+}
+
+/// A trainer: model, optimiser state, step counter.
+#[derive(Debug)]
+pub struct Trainer {
+    pub cfg: Stage1Config,
+    pub model: Model,
+    adam_sdf: AdamState,
+    adam_radiance: AdamState,
+    pub step: u64,
+    /// Steps skipped because their gradient held NaN/Inf.
+    pub skipped: u64,
+    host: Backend,
+}
+
+/// Checkpoint file names inside a run folder.
+pub const CHECKPOINT: &str = "checkpoint.safetensors";
+pub const RUN_CONFIG: &str = "run.json";
+
+impl Trainer {
+    pub fn new(cfg: Stage1Config) -> Result<Self, BackendError> {
+        cfg.validate()?;
+        let model = Model::new(&cfg)?;
+        let host = Backend::cpu();
+        let adam_sdf = AdamState::new(&host, model.sdf_params.len());
+        let adam_radiance = AdamState::new(&host, model.radiance_params.len());
+        Ok(Self { cfg, model, adam_sdf, adam_radiance, step: 0, skipped: 0, host })
+    }
+
+    fn adam(&self) -> AdamConfig {
+        AdamConfig { eps: 1e-15, grad_clip_norm: None, ..AdamConfig::with_lr(self.cfg.lr_field) }
+    }
+
+    /// Apply gradients (skipped and counted when any value is non-finite).
+    pub fn apply(&mut self, d_sdf: Vec<f32>, d_radiance: Vec<f32>, lr_field: f32, lr_radiance: f32) -> Result<(bool, f64), BackendError> {
+        let norm2: f64 = d_sdf.iter().chain(&d_radiance).map(|&g| (g as f64) * (g as f64)).sum();
+        if !norm2.is_finite() || d_sdf.iter().chain(&d_radiance).any(|g| !g.is_finite()) {
+            self.skipped += 1;
+            return Ok((false, f64::NAN));
+        }
+        let cfg = self.adam();
+        adam_host(&self.host, &cfg, &mut self.model.sdf_params, d_sdf, &mut self.adam_sdf, lr_field)?;
+        adam_host(&self.host, &cfg, &mut self.model.radiance_params, d_radiance, &mut self.adam_radiance, lr_radiance)?;
+        Ok((true, norm2.sqrt()))
+    }
+
+    /// The rng of step `step` (independent of how the run was split into sessions).
+    pub fn step_rng(&self, step: u64) -> rand::rngs::StdRng {
+        crate::util::rng(self.cfg.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(step))
+    }
+
+    /// One photometric iteration.
+    pub fn train_step(&mut self, backend: &Backend, data: &TrainData) -> Result<StepStats, BackendError> {
+        let mut rng = self.step_rng(self.step);
+        let batch = data.sample(&mut rng, self.cfg.rays);
+        let b = self.cfg.trace.bound;
+        let eik: Vec<[f32; 3]> = (0..self.cfg.eikonal_points)
+            .map(|_| [rng.random_range(-b..b), rng.random_range(-b..b), rng.random_range(-b..b)])
+            .collect();
+        let ls = LossSettings {
+            alpha: self.cfg.alpha_at(self.step),
+            eikonal_weight: self.cfg.eikonal_weight,
+            mask_weight: self.cfg.mask_weight,
+            eikonal_points: self.cfg.eikonal_points,
+            mask_samples: self.cfg.mask_samples,
+        };
+        let jitter = rng.random_range(0.0f32..1.0);
+        let g = loss_and_grad(backend, &self.model, &self.cfg.trace, &batch, &eik, &ls, jitter)?;
+        let f = self.cfg.lr_factor(self.step);
+        let (lf, lr) = (self.cfg.lr_field * f, self.cfg.lr_radiance * f);
+        let (applied, norm) = if g.stats.loss.is_finite() { self.apply(g.d_sdf, g.d_radiance, lf, lr)? } else {
+            self.skipped += 1;
+            (false, f64::NAN)
+        };
+        self.step += 1;
+        Ok(StepStats { step: self.step, applied, grad_norm: norm, lr_field: lf, ..g.stats })
+    }
+
+    /// Fit the SDF to a signed distance grid (the visual hull) for `steps` steps: L1 on the
+    /// distance within ±`clamp`, plus the eikonal term. Returns the final mean error.
+    pub fn fit_to_grid(&mut self, backend: &Backend, grid: &super::hull::Grid3, steps: u64, mut progress: impl FnMut(u64, f64)) -> Result<f64, BackendError> {
+        let n = 4096usize;
+        let clamp = 0.1f32;
+        // Points near the hull's surface (voxels within two cells of the zero level) and uniform ones.
+        let near: Vec<[f32; 3]> = (0..grid.data.len())
+            .filter(|&i| grid.data[i].abs() < 2.0 * grid.spacing())
+            .map(|i| grid.centre(i % grid.res, (i / grid.res) % grid.res, i / (grid.res * grid.res)))
+            .collect();
+        let mut last = f64::NAN;
+        // The fit has its own optimiser state: photometric training starts with fresh moments.
+        let mut fit_state = AdamState::new(&self.host, self.model.sdf_params.len());
+        let h = grid.spacing();
+        let b = self.cfg.trace.bound;
+        for s in 0..steps {
+            let mut rng = crate::util::rng(self.cfg.seed ^ 0xA5A5 ^ (s << 20));
+            let pts: Vec<[f32; 3]> = (0..n)
+                .map(|k| {
+                    if k % 2 == 0 && !near.is_empty() {
+                        let c = near[rng.random_range(0..near.len())];
+                        [0, 1, 2].map(|a| c[a] + rng.random_range(-h..h))
+                    } else {
+                        [rng.random_range(-b..b), rng.random_range(-b..b), rng.random_range(-b..b)]
+                    }
+                })
+                .collect();
+            let target: Vec<f32> = pts.iter().map(|&p| grid.sample(p).clamp(-clamp, clamp)).collect();
+            let w = self.cfg.eikonal_weight as f64;
+            let (l, d) = self.model.field.value_and_grad(backend, &self.model.sdf_params, bytemuck::cast_slice(&pts), |o| {
+                let mut g = FieldOutputGrads { sdf: vec![0.0; n], gradient: vec![0.0; 3 * n], feature: vec![] };
+                let mut l = 0.0;
+                for i in 0..n {
+                    let e = o.sdf[i].clamp(-clamp, clamp) - target[i];
+                    let inside = o.sdf[i].abs() < clamp || e * o.sdf[i] < 0.0;
+                    l += e.abs() as f64 / n as f64;
+                    if inside {
+                        g.sdf[i] = e.signum() / n as f32;
+                    }
+                    let gr = &o.gradient[3 * i..3 * i + 3];
+                    let len = ((gr[0] * gr[0] + gr[1] * gr[1] + gr[2] * gr[2]) as f64).sqrt();
+                    l += w * (len - 1.0).powi(2) / n as f64;
+                    let c = (w * 2.0 * (len - 1.0) / len.max(1e-12) / n as f64) as f32;
+                    for a in 0..3 {
+                        g.gradient[3 * i + a] = c * gr[a];
+                    }
+                }
+                (l, g)
+            })?;
+            if !d.iter().all(|v| v.is_finite()) {
+                self.skipped += 1;
+                continue;
+            }
+            adam_host(&self.host, &self.adam(), &mut self.model.sdf_params, d, &mut fit_state, self.cfg.lr_field.max(5e-3))?;
+            last = l;
+            progress(s, l);
+        }
+        Ok(last)
+    }
+
+    /// Save a checkpoint (params + Adam state + config + step) into `dir`, atomically.
+    pub fn save(&self, dir: &Path, scene_key: &str) -> Result<(), DataError> {
+        let mut st = ParamStore::new();
+        let err = |e: BackendError| DataError::new(dir, e.to_string());
+        st.insert("sdf", &[self.model.sdf_params.len()], self.model.sdf_params.clone()).map_err(err)?;
+        st.insert("radiance", &[self.model.radiance_params.len()], self.model.radiance_params.clone()).map_err(err)?;
+        st.put_adam_state(&self.host, "sdf", &self.adam_sdf).map_err(err)?;
+        st.put_adam_state(&self.host, "radiance", &self.adam_radiance).map_err(err)?;
+        st.set_config(&self.cfg).map_err(|e| DataError::new(dir, e.to_string()))?;
+        st.set_step(self.step);
+        st.metadata.insert("scene".into(), scene_key.to_string());
+        st.metadata.insert("skipped".into(), self.skipped.to_string());
+        st.save(&dir.join(CHECKPOINT))?;
+        let cfg = serde_json::json!({ "stage": "geometry", "step": self.step, "scene": scene_key, "config": self.cfg });
+        crate::util::atomic_write(&dir.join(RUN_CONFIG), serde_json::to_string_pretty(&cfg).unwrap_or_default().as_bytes())
+    }
+
+    /// Load a checkpoint written by [`Trainer::save`]. `expect`: the scene key the run must
+    /// belong to (None: any). The config is the checkpoint's own.
+    pub fn load(dir: &Path, expect_scene: Option<&str>) -> Result<(Self, String), DataError> {
+        let path = dir.join(CHECKPOINT);
+        if !path.is_file() {
+            return Err(DataError::new(&path, "no stage-1 checkpoint here (train one with `pii-bake train <scene> --out <run-dir>`)"));
+        }
+        let st = ParamStore::load(&path)?;
+        let cfg: Stage1Config = st
+            .config_json()
+            .ok_or_else(|| DataError::new(&path, "checkpoint has no run configuration"))
+            .and_then(|j| serde_json::from_str(j).map_err(|e| DataError::new(&path, format!("checkpoint configuration: {e}"))))?;
+        let scene = st.metadata.get("scene").cloned().unwrap_or_default();
+        if let Some(k) = expect_scene {
+            if k != scene {
+                return Err(DataError::new(&path, format!("this run was trained on another scene ({scene}), not {k}")));
+            }
+        }
+        let mut t = Trainer::new(cfg).map_err(|e| DataError::new(&path, e.to_string()))?;
+        let get = |name: &str, len: usize| -> Result<Vec<f32>, DataError> {
+            let d = st.data(name).ok_or_else(|| DataError::new(&path, format!("checkpoint lacks tensor {name:?}")))?;
+            if d.len() != len {
+                return Err(DataError::new(&path, format!("tensor {name:?} has {} values; this run's {} network needs {len} (a checkpoint from another preset or version?)", d.len(), t.cfg.preset.name())));
+            }
+            if d.iter().any(|v| !v.is_finite()) {
+                return Err(DataError::new(&path, format!("tensor {name:?} holds NaN/Inf values")));
+            }
+            Ok(d.to_vec())
+        };
+        t.model.sdf_params = get("sdf", t.model.sdf_params.len())?;
+        t.model.radiance_params = get("radiance", t.model.radiance_params.len())?;
+        let host = t.host.clone();
+        if let Some(s) = st.adam_state(&host, "sdf").map_err(|e| DataError::new(&path, e.to_string()))? {
+            t.adam_sdf = s;
+        }
+        if let Some(s) = st.adam_state(&host, "radiance").map_err(|e| DataError::new(&path, e.to_string()))? {
+            t.adam_radiance = s;
+        }
+        t.step = st.step().unwrap_or(0);
+        t.skipped = st.metadata.get("skipped").and_then(|s| s.parse().ok()).unwrap_or(0);
+        Ok((t, scene))
+    }
+}
+
+/// One Adam step on a host parameter vector.
+fn adam_host(host: &Backend, cfg: &AdamConfig, params: &mut Vec<f32>, grads: Vec<f32>, state: &mut AdamState, lr: f32) -> Result<(), BackendError> {
+    let mut p = host.from_vec(std::mem::take(params));
+    let r = host.adam_step_group(cfg, &mut [AdamItem { params: &mut p, grads: &host.from_vec(grads), state }], lr);
+    if let crate::backend::Tensor::Host(v) = p {
+        *params = v;
+    }
+    r.map(|_| ())
+}
+
+/// A key that names a scene and how it was read (folder, format, view names and sizes).
+pub fn scene_key(scene: &crate::scene::Scene, views: &[&View]) -> String {
+    let mut h = crc32fast::Hasher::new();
+    for v in views {
+        h.update(v.name.as_bytes());
+        h.update(&(v.camera.width as u64).to_le_bytes());
+        h.update(&(v.camera.height as u64).to_le_bytes());
+    }
+    let name = scene.source.file_name().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
+    format!("{name}:{}:{:08x}", views.len(), h.finalize())
+}

@@ -1,0 +1,226 @@
+//! `pii-bake train` / `export --run` / trained `bake` through the binary, at tiny sizes: a run
+//! interrupted and resumed follows the straight run's loss curve, Ctrl-C checkpoints, the run
+//! exports to a valid asset, and bad inputs (no masks, cameras that miss the object, corrupt or
+//! mismatched checkpoints, unwritable folders) give one clear error naming the file.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+mod common;
+
+fn example() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/example")
+}
+
+fn pii(args: &[&str]) -> std::process::Output {
+    assert_cmd::Command::cargo_bin("pii-bake")
+        .unwrap()
+        .env("XDG_RUNTIME_DIR", std::env::temp_dir())
+        .args(["--backend", "cpu"])
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+fn text(o: &std::process::Output) -> String {
+    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+}
+
+const TINY: [&str; 8] = ["--rays", "96", "--downscale", "4", "--init", "sphere", "--seed", "5"];
+
+fn train(run: &Path, extra: &[&str]) -> std::process::Output {
+    let ex = example();
+    let mut a = vec!["train", ex.to_str().unwrap(), "--out", run.to_str().unwrap()];
+    a.extend_from_slice(&TINY);
+    a.extend_from_slice(extra);
+    pii(&a)
+}
+
+/// The loss curve without the timing column.
+fn curve(run: &Path) -> Vec<String> {
+    std::fs::read_to_string(run.join("loss_curve.csv"))
+        .unwrap()
+        .lines()
+        .skip(1)
+        .map(|l| l.rsplit_once(',').unwrap().0.to_string())
+        .collect()
+}
+
+#[test]
+fn resumed_run_follows_the_straight_run_and_exports() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    let o = train(&a, &["--iterations", "6", "--checkpoint-every", "3"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let out = text(&o);
+    assert!(out.contains("stage 1") && out.contains("PSNR") && out.contains("mask IoU"), "{out}");
+    let o = train(&b, &["--iterations", "3", "--checkpoint-every", "3"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let o = train(&b, &["--iterations", "6", "--checkpoint-every", "3", "--resume"]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("resuming"), "{}", text(&o));
+    let (ca, cb) = (curve(&a), curve(&b));
+    assert_eq!(ca.len(), 6);
+    assert_eq!(ca, cb, "interrupted + resumed run must follow the straight run's loss curve");
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("train_report.json")).unwrap()).unwrap();
+    assert_eq!(report["steps"], 6);
+    assert!(report["sizes"]["grid_finest"].as_u64().unwrap() >= 64, "sizes are reported: {}", report["sizes"]);
+    assert!(report["eval"]["mask_iou"].as_f64().unwrap() > 0.0);
+
+    // Export the run.
+    let asset = dir.path().join("asset");
+    let o = pii(&["export", "--run", a.to_str().unwrap(), "--out", asset.to_str().unwrap(), "--resolution", "40", "--texture", "64", "--name", "spot"]);
+    assert!(o.status.success(), "{}", text(&o));
+    for f in ["spot.glb", "asset.usda", "env.exr", "textures/albedo.png"] {
+        assert!(asset.join(f).is_file(), "{f} missing");
+    }
+    common::assert_gltf_valid(&asset.join("spot.glb"));
+
+    // A corrupt checkpoint: a clear error naming it.
+    std::fs::write(a.join("checkpoint.safetensors"), b"\x10\x00\x00\x00\x00\x00\x00\x00{not json").unwrap();
+    let o = pii(&["export", "--run", a.to_str().unwrap(), "--out", dir.path().join("x").to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(text(&o).contains("checkpoint.safetensors") && !text(&o).contains("panicked"), "{}", text(&o));
+
+    // A run of another preset: refused by --resume.
+    let o = train(&b, &["--iterations", "8", "--resume", "--preset", "paper"]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(text(&o).contains("checkpoint.safetensors") && text(&o).contains("preset"), "{}", text(&o));
+}
+
+#[test]
+fn ctrl_c_writes_a_checkpoint_and_resume_continues() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let ex = example();
+    let mut child = Command::new(assert_cmd::cargo::cargo_bin("pii-bake"))
+        .env("XDG_RUNTIME_DIR", std::env::temp_dir())
+        .args(["--backend", "cpu", "--json", "train", ex.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "100000", "--checkpoint-every", "100000"])
+        .args(TINY)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Wait for the first progress record, then interrupt.
+    use std::io::BufRead;
+    let stdout = child.stdout.take().unwrap();
+    let mut lines = std::io::BufReader::new(stdout).lines();
+    loop {
+        let l = lines.next().expect("progress records before the end").unwrap();
+        if l.contains("\"type\":\"progress\"") {
+            break;
+        }
+    }
+    let st = Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap();
+    assert!(st.success());
+    for _ in lines {}
+    let o = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("interrupted") && err.contains("--resume"), "{err}");
+    let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("run.json")).unwrap()).unwrap();
+    let step = meta["step"].as_u64().unwrap();
+    assert!(step >= 1);
+    let n = (step + 2).to_string();
+    let o = train(&run, &["--iterations", &n, "--resume"]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert_eq!(curve(&run).len() as u64, step + 2);
+}
+
+/// A copy of the example (train split only) for damaging.
+fn copy_example(dst: &Path) {
+    let ex = example();
+    std::fs::create_dir_all(dst.join("train")).unwrap();
+    for f in ["transforms_train.json", "scene.json"] {
+        std::fs::copy(ex.join(f), dst.join(f)).unwrap();
+    }
+    for e in std::fs::read_dir(ex.join("train")).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), dst.join("train").join(e.file_name())).unwrap();
+    }
+}
+
+#[test]
+fn bad_scenes_and_folders_give_clear_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    // Photos without masks: RGB PNGs with no alpha.
+    let nomask = dir.path().join("nomask");
+    copy_example(&nomask);
+    for e in std::fs::read_dir(nomask.join("train")).unwrap() {
+        let p = e.unwrap().path();
+        let img = pii_bake::image_io::read_image_linear(&p).unwrap();
+        pii_bake::image_io::write_png8(&p, img.width, img.height, 3, &img.rgb(), true).unwrap();
+    }
+    let o = pii(&["train", nomask.to_str().unwrap(), "--out", dir.path().join("r1").to_str().unwrap(), "--iterations", "1"]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    let t = text(&o);
+    assert!(t.contains(".png") && t.contains("mask"), "{t}");
+
+    // A camera that looks away from the object.
+    let away = dir.path().join("away");
+    copy_example(&away);
+    let p = away.join("transforms_train.json");
+    let mut j: serde_json::Value = serde_json::from_slice(&std::fs::read(&p).unwrap()).unwrap();
+    let m = &mut j["frames"][0]["transform_matrix"];
+    for r in 0..3 {
+        for c in [0, 2] {
+            let v = m[r][c].as_f64().unwrap();
+            m[r][c] = serde_json::json!(-v);
+        }
+    }
+    let name = j["frames"][0]["file_path"].as_str().unwrap().trim_start_matches("./").to_string();
+    std::fs::write(&p, serde_json::to_vec(&j).unwrap()).unwrap();
+    let o = pii(&["train", away.to_str().unwrap(), "--out", dir.path().join("r2").to_str().unwrap(), "--iterations", "1", "--downscale", "4"]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    let t = text(&o);
+    assert!(t.contains(name.rsplit('/').next().unwrap()) && !t.contains("panicked"), "names the view {name}: {t}");
+
+    // An unwritable run folder (below a regular file).
+    let file = dir.path().join("plain-file");
+    std::fs::write(&file, b"x").unwrap();
+    let bad = file.join("run");
+    let ex = example();
+    let o = pii(&["train", ex.to_str().unwrap(), "--out", bad.to_str().unwrap(), "--iterations", "1"]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(text(&o).contains(bad.to_str().unwrap()), "{}", text(&o));
+
+    // export --run on a folder that is not a run.
+    let o = pii(&["export", "--run", dir.path().to_str().unwrap(), "--out", dir.path().join("a").to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(text(&o).contains("scene.json") || text(&o).contains("checkpoint"), "{}", text(&o));
+
+    // A run from another scene is refused by --resume.
+    let other = dir.path().join("other");
+    copy_example(&other);
+    let p = other.join("transforms_train.json");
+    let mut j: serde_json::Value = serde_json::from_slice(&std::fs::read(&p).unwrap()).unwrap();
+    j["frames"].as_array_mut().unwrap().truncate(12);
+    std::fs::write(&p, serde_json::to_vec(&j).unwrap()).unwrap();
+    let run = dir.path().join("r3");
+    let o = train(&run, &["--iterations", "1"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let mut a = vec!["train", other.to_str().unwrap(), "--out", run.to_str().unwrap(), "--resume", "--iterations", "2"];
+    a.extend_from_slice(&TINY);
+    let o = pii(&a);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(text(&o).contains("another scene"), "{}", text(&o));
+}
+
+#[test]
+fn bake_trains_stage_one_and_ships_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("asset");
+    let ex = example();
+    let o = pii(&[
+        "bake", ex.to_str().unwrap(), "--out", out.to_str().unwrap(), "--iterations", "4", "--rays", "96", "--downscale", "4",
+        "--init", "hull", "--init-steps", "10", "--resolution", "40", "--texture", "64", "--name", "spot",
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("bake_report.json")).unwrap()).unwrap();
+    assert_eq!(report["method"], "stage1-fast");
+    assert_eq!(report["training"]["steps"], 4);
+    assert!(report["training"]["hull_init"]["fit_steps"] == 10);
+    assert!(report["ground_truth"]["metrics"]["chamfer"].as_f64().is_some(), "{}", report["ground_truth"]);
+    assert!(out.join("spot.glb").is_file() && out.join("run/checkpoint.safetensors").is_file());
+    common::assert_gltf_valid(&out.join("spot.glb"));
+}
