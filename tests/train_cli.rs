@@ -74,7 +74,7 @@ fn resumed_run_follows_the_straight_run_and_exports() {
     for f in ["spot.glb", "asset.usda", "env.exr", "textures/albedo.png"] {
         assert!(asset.join(f).is_file(), "{f} missing");
     }
-    common::assert_gltf_valid(&asset.join("spot.glb"));
+    common::assert_gltf_valid(&[asset.join("spot.glb")]);
 
     // A corrupt checkpoint: a clear error naming it.
     std::fs::write(a.join("checkpoint.safetensors"), b"\x10\x00\x00\x00\x00\x00\x00\x00{not json").unwrap();
@@ -222,5 +222,5 @@ fn bake_trains_stage_one_and_ships_it() {
     assert!(report["training"]["hull_init"]["fit_steps"] == 10);
     assert!(report["ground_truth"]["metrics"]["chamfer"].as_f64().is_some(), "{}", report["ground_truth"]);
     assert!(out.join("spot.glb").is_file() && out.join("run/checkpoint.safetensors").is_file());
-    common::assert_gltf_valid(&out.join("spot.glb"));
+    common::assert_gltf_valid(&[out.join("spot.glb")]);
 }

@@ -13,17 +13,19 @@ fn tiny_config() -> Stage1Config {
     let mut cfg = Stage1Config::for_scene(Preset::Fast, TraceMode::Classic, InitMode::Sphere, &[], 0, 1);
     cfg.field = SdfFieldConfig {
         encoding: FieldEncoding::Frequency { n_freqs: 2 },
-        widths: vec![16, 16],
+        widths: vec![32, 32],
         skip_layers: vec![],
-        activation: Activation::Softplus { beta: 10.0 },
+        activation: Activation::Softplus { beta: 30.0 },
         weight_norm: false,
         feature_dim: 2,
         init_radius: 0.5,
-        grad_step: 1e-3,
+        // A wide stencil keeps f32 rounding in the numerical normals (which the colour sees) well
+        // below the central differences' signal.
+        grad_step: 1e-2,
     };
     cfg.radiance_widths = vec![8];
     cfg.view_freqs = 1;
-    cfg.seed = 3;
+    cfg.seed = 4;
     // Tight tracing so a re-traced point follows the parameters smoothly.
     cfg.trace.threshold = 1e-6;
     cfg.trace.sphere_steps = 60;
@@ -54,7 +56,14 @@ fn batch() -> Batch {
 }
 
 fn settings() -> LossSettings {
-    LossSettings { alpha: 10.0, eikonal_weight: 0.1, mask_weight: 1.0, eikonal_points: 4, mask_samples: 40 }
+    LossSettings { alpha: 10.0, eikonal_weight: 0.1, mask_weight: 1.0, eikonal_points: 4, mask_samples: 40, near_surface_sigma: 0.05, surface_eikonal: true }
+}
+
+/// The differentiable pixel: eikonal at the uniform points only (the eikonal at surface points
+/// is taken at the traced points held fixed, as IDR does, so it is not a function of the
+/// re-traced render; its own backward is the field's, tested in `nn::field`).
+fn pixel_settings() -> LossSettings {
+    LossSettings { near_surface_sigma: 0.0, surface_eikonal: false, ..settings() }
 }
 
 const EIK: [[f32; 3]; 4] = [[0.3, -0.2, 0.1], [-0.6, 0.5, 0.2], [0.0, 0.8, -0.3], [0.45, 0.1, -0.2]];
@@ -65,11 +74,11 @@ fn whole_pixel_gradient_matches_central_differences() {
     let cfg = tiny_config();
     let model = Model::new(&cfg).unwrap();
     let batch = batch();
-    let g = loss_and_grad(&b, &model, &cfg.trace, &batch, &EIK, &settings(), 0.0).unwrap();
+    let g = loss_and_grad(&b, &model, &cfg.trace, &batch, &EIK, &pixel_settings(), 0.0).unwrap();
     assert_eq!(g.stats.surface_rays, 3, "{:?}", g.stats);
     assert_eq!(g.stats.mask_rays, 3);
     assert!(g.stats.rgb > 0.0 && g.stats.eikonal > 0.0 && g.stats.mask > 0.0, "{:?}", g.stats);
-    let loss = |m: &Model| loss_and_grad(&b, m, &cfg.trace, &batch, &EIK, &settings(), 0.0).unwrap().stats.loss;
+    let loss = |m: &Model| loss_and_grad(&b, m, &cfg.trace, &batch, &EIK, &pixel_settings(), 0.0).unwrap().stats.loss;
     let check = |which: &str, analytic: &[f32], len: usize, set: &dyn Fn(&mut Model, usize, f32)| {
         let mut worst = 0.0f64;
         let mut checked = 0;
@@ -84,6 +93,7 @@ fn whole_pixel_gradient_matches_central_differences() {
             let lm = loss(&mm);
             let fd = (lp - lm) / (2.0 * h as f64);
             let a = analytic[idx] as f64;
+            // f32 rounding in the numerical normals puts ~4e-4 of noise on these differences.
             let err = (a - fd).abs() / (1e-3 + 0.05 * fd.abs().max(a.abs()));
             worst = worst.max(err);
             assert!(err <= 1.0, "{which} param {idx}: analytic {a:.6e} vs central difference {fd:.6e}");
@@ -207,7 +217,7 @@ fn a_few_steps_learn_a_silhouette() {
     let wrong_before = eval(&t, &mut pii_bake::util::rng(99));
     for step in 0..25 {
         let bt = make_batch(&mut rng);
-        let ls = LossSettings { alpha: 50.0, eikonal_weight: 0.1, mask_weight: 100.0, eikonal_points: 64, mask_samples: 16 };
+        let ls = LossSettings { alpha: 50.0, eikonal_weight: 0.1, mask_weight: 100.0, eikonal_points: 64, mask_samples: 16, near_surface_sigma: 0.02, surface_eikonal: true };
         let g = loss_and_grad(&b, &t.model, &t.cfg.trace, &bt, &EIK, &ls, 0.5).unwrap();
         assert!(g.stats.loss.is_finite(), "step {step}: {:?}", g.stats);
         let (applied, _) = t.apply(g.d_sdf, g.d_radiance, 1e-2, 1e-2).unwrap();
@@ -217,3 +227,5 @@ fn a_few_steps_learn_a_silhouette() {
     assert!(wrong_after * 2 < wrong_before, "silhouette errors: {wrong_before} before, {wrong_after} after 25 steps");
     assert!(t.model.sdf_params.iter().all(|v| v.is_finite()));
 }
+
+

@@ -67,6 +67,8 @@ pub enum BenchCommand {
     Nn(crate::nn::bench::BenchNnArgs),
     /// Environment SG fitting: lobes vs error vs time, with a chart.
     Env(crate::sg::bench::BenchEnvArgs),
+    /// Stage-1 training: Chamfer against wall time per variant (preset × tracing × init), with a chart.
+    Train(crate::train::bench::BenchTrainArgs),
     /// Asset back end timings (grid, marching cubes, simplify, unwrap, bake).
     Export(crate::export::bench::BenchExportArgs),
 }
@@ -130,5 +132,6 @@ pub fn run(cmd: &Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Bench(BenchCommand::Nn(a)) => crate::nn::bench::run(a, ctx),
         Command::Bench(BenchCommand::Env(a)) => crate::sg::bench::run(a, ctx),
         Command::Bench(BenchCommand::Export(a)) => crate::export::bench::run(a, ctx),
+        Command::Bench(BenchCommand::Train(a)) => crate::train::bench::run(a, ctx),
     }
 }

@@ -102,7 +102,7 @@ pub struct Stage1Run {
     pub report: serde_json::Value,
 }
 
-fn train_views(scene: &Scene) -> (Vec<&View>, Vec<&View>) {
+pub fn train_views(scene: &Scene) -> (Vec<&View>, Vec<&View>) {
     let mut train: Vec<&View> = scene.views_in(Split::Train).collect();
     let mut held: Vec<&View> = scene.views_in(Split::Test).collect();
     if held.is_empty() {

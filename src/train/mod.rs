@@ -1,5 +1,6 @@
 //! Training stages, losses, schedules, progress, checkpoint/resume.
 
+pub mod bench;
 pub mod cli;
 pub mod hull;
 pub mod photo;

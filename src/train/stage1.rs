@@ -111,6 +111,10 @@ pub struct Stage1Config {
     pub alpha_doublings: Vec<f32>,
     /// Samples along a mask ray that hit outside the mask.
     pub mask_samples: usize,
+    /// Fraction of each batch drawn from the masks' foreground pixels (the rest: all pixels).
+    pub foreground_fraction: f32,
+    /// Eikonal points jittered around the surface points (normal deviation, normalised units).
+    pub near_surface_sigma: f32,
     pub seed: u64,
     pub checkpoint_every: u64,
     pub downscale: usize,
@@ -156,7 +160,7 @@ impl Stage1Config {
                     view_freqs: 4,
                     trace,
                     init,
-                    hull_fit_steps: 300,
+                    hull_fit_steps: 200,
                     rays: 1024,
                     iterations: 1000,
                     lr_field: 5e-3,
@@ -168,6 +172,8 @@ impl Stage1Config {
                     alpha_init: 50.0,
                     alpha_doublings: vec![0.125, 0.25, 0.375, 0.5, 0.625],
                     mask_samples: 32,
+                    foreground_fraction: 0.5,
+                    near_surface_sigma: 0.02,
                     seed: 0,
                     checkpoint_every: 100,
                     downscale,
@@ -193,6 +199,8 @@ impl Stage1Config {
                 alpha_init: 50.0,
                 alpha_doublings: vec![0.125, 0.25, 0.375, 0.5, 0.625],
                 mask_samples: 100,
+                foreground_fraction: 0.5,
+                near_surface_sigma: 0.02,
                 seed: 0,
                 checkpoint_every: 50,
                 downscale,
@@ -265,6 +273,8 @@ pub struct TrainView {
 pub struct TrainData {
     pub views: Vec<TrainView>,
     offsets: Vec<usize>,
+    /// Global indices of the foreground pixels (mask ≥ 0.5).
+    foreground: Vec<u32>,
 }
 
 /// A batch of pixels.
@@ -312,22 +322,33 @@ impl TrainData {
             return Err(DataError::new(Path::new("."), "no training views"));
         }
         let mut offsets = vec![0usize];
+        let mut foreground = Vec::new();
         for v in &out {
-            offsets.push(offsets.last().unwrap() + v.camera.width * v.camera.height);
+            let base = *offsets.last().unwrap();
+            foreground.extend(v.mask.iter().enumerate().filter(|(_, m)| **m >= 0.5).map(|(i, _)| (base + i) as u32));
+            offsets.push(base + v.camera.width * v.camera.height);
         }
-        Ok(Self { views: out, offsets })
+        if offsets.last().copied().unwrap_or(0) > u32::MAX as usize {
+            return Err(DataError::new(&out[0].path, "more than 4 billion training pixels: use --downscale"));
+        }
+        Ok(Self { views: out, offsets, foreground })
     }
 
     pub fn pixels(&self) -> usize {
         *self.offsets.last().unwrap()
     }
 
-    /// `n` pixels drawn uniformly with `rng`.
-    pub fn sample(&self, rng: &mut impl Rng, n: usize) -> Batch {
+    /// `n` pixels: a `foreground` fraction drawn uniformly from the masks' foreground pixels, the
+    /// rest uniformly from all pixels (the silhouette and the background keep the mask term fed).
+    pub fn sample(&self, rng: &mut impl Rng, n: usize, foreground: f32) -> Batch {
         let total = self.pixels();
         let mut b = Batch::default();
         for _ in 0..n {
-            let g = rng.random_range(0..total);
+            let g = if !self.foreground.is_empty() && rng.random_range(0.0f32..1.0) < foreground {
+                self.foreground[rng.random_range(0..self.foreground.len())] as usize
+            } else {
+                rng.random_range(0..total)
+            };
             let vi = self.offsets.partition_point(|&o| o <= g) - 1;
             let v = &self.views[vi];
             let p = g - self.offsets[vi];
@@ -440,6 +461,10 @@ pub struct LossSettings {
     pub mask_weight: f32,
     pub eikonal_points: usize,
     pub mask_samples: usize,
+    /// Eikonal points jittered around each surface point (0 = none).
+    pub near_surface_sigma: f32,
+    /// Also apply the eikonal term at the traced surface points (held fixed, as IDR).
+    pub surface_eikonal: bool,
 }
 
 /// Step size of the central difference for `∂c/∂x·v`.
@@ -507,6 +532,17 @@ pub fn loss_and_grad(
         (0..s).map(|k| [0, 1, 2].map(|ch| (c[k][ch] - c[s + k][ch]) / (2.0 * RAY_EPS))).collect()
     };
 
+    // Eikonal points: the caller's uniform ones, plus one jittered around each surface point
+    // (keeps the fine levels of a hash grid smooth where the surface is).
+    let mut eik_all: Vec<[f32; 3]> = eik_points.to_vec();
+    if ls.near_surface_sigma > 0.0 {
+        let mut rng = crate::util::rng(0x5EED ^ jitter.to_bits() as u64);
+        let normal = rand_distr::Normal::new(0.0f32, ls.near_surface_sigma).map_err(|e| BackendError::Config(e.to_string()))?;
+        for p in &x0 {
+            eik_all.push([0, 1, 2].map(|a| p[a] + rand_distr::Distribution::sample(&normal, &mut rng)));
+        }
+    }
+    let eik_points = &eik_all[..];
     // One batched value-and-grad over [surface; min-SDF; eikonal] points.
     let (ns, nm, ne) = (x0.len(), x_min.len(), eik_points.len());
     let mut pts: Vec<f32> = Vec::with_capacity(3 * (ns + nm + ne));
@@ -579,7 +615,7 @@ pub fn loss_and_grad(
             g.sdf[i] += (w * (sig - m) * -alpha) as f32;
         }
         // Eikonal at surface and uniform points.
-        let eik_idx: Vec<usize> = (0..ns).chain(ns + nm..n).collect();
+        let eik_idx: Vec<usize> = (0..if ls.surface_eikonal { ns } else { 0 }).chain(ns + nm..n).collect();
         let inv_e = 1.0 / eik_idx.len().max(1) as f64;
         for &i in &eik_idx {
             let gr = &o.gradient[3 * i..3 * i + 3];
@@ -662,7 +698,7 @@ impl Trainer {
     /// One photometric iteration.
     pub fn train_step(&mut self, backend: &Backend, data: &TrainData) -> Result<StepStats, BackendError> {
         let mut rng = self.step_rng(self.step);
-        let batch = data.sample(&mut rng, self.cfg.rays);
+        let batch = data.sample(&mut rng, self.cfg.rays, self.cfg.foreground_fraction);
         let b = self.cfg.trace.bound;
         let eik: Vec<[f32; 3]> = (0..self.cfg.eikonal_points)
             .map(|_| [rng.random_range(-b..b), rng.random_range(-b..b), rng.random_range(-b..b)])
@@ -673,6 +709,8 @@ impl Trainer {
             mask_weight: self.cfg.mask_weight,
             eikonal_points: self.cfg.eikonal_points,
             mask_samples: self.cfg.mask_samples,
+            near_surface_sigma: self.cfg.near_surface_sigma,
+            surface_eikonal: true,
         };
         let jitter = rng.random_range(0.0f32..1.0);
         let g = loss_and_grad(backend, &self.model, &self.cfg.trace, &batch, &eik, &ls, jitter)?;
@@ -689,7 +727,7 @@ impl Trainer {
     /// Fit the SDF to a signed distance grid (the visual hull) for `steps` steps: L1 on the
     /// distance within ±`clamp`, plus the eikonal term. Returns the final mean error.
     pub fn fit_to_grid(&mut self, backend: &Backend, grid: &super::hull::Grid3, steps: u64, mut progress: impl FnMut(u64, f64)) -> Result<f64, BackendError> {
-        let n = 4096usize;
+        let n = 2048usize;
         let clamp = 0.1f32;
         // Points near the hull's surface (voxels within two cells of the zero level) and uniform ones.
         let near: Vec<[f32; 3]> = (0..grid.data.len())

@@ -1,0 +1,305 @@
+//! `pii-bake bench train`: stage-1 speed against accuracy. For each variant (preset × tracing ×
+//! init) on each scene, train for a wall-time budget, and every `--eval-every` iterations mesh the
+//! SDF (marching tetrahedra on a grid, largest component) and measure Chamfer distance (relative
+//! to the object's size) and normal consistency against the scene's ground-truth mesh, with the
+//! clock paused. The visual hull (the preview bake's geometry) is measured the same way as the
+//! baseline. Writes `bench-train.csv`, `bench-train.json` (iterations/s, time to reach half the
+//! hull's Chamfer, held-out PSNR and mask IoU at the end) and `bench-train.svg` (Chamfer against
+//! wall time, one curve per variant).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use glam::DVec3;
+use serde::Serialize;
+
+use super::cli::{evaluate_views, train_views};
+use super::hull::{carve, signed_distance, MaskView};
+use super::preview::{smooth, ViewAdapter};
+use super::stage1::{InitMode, Preset, Stage1Config, TrainData, Trainer};
+use crate::backend::Backend;
+use crate::context::Context;
+use crate::mesh::field::{Aabb, SdfField as MeshSdf, SdfSamples};
+use crate::render::TraceMode;
+use crate::scene::{ReadOptions, View};
+
+#[derive(Debug, clap::Args)]
+pub struct BenchTrainArgs {
+    /// Scenes with a ground-truth mesh (`gt/mesh.obj|ply`); default: the bundled example.
+    #[arg(long, num_args = 1..)]
+    pub scene: Vec<PathBuf>,
+    /// Output folder for the CSV/JSON/SVG.
+    #[arg(long, default_value = "bench-out/train")]
+    pub out: PathBuf,
+    /// Variants as preset-tracing-init, e.g. fast-refined-hull (default: the four fast variants
+    /// plus paper-refined-hull).
+    #[arg(long, num_args = 1..)]
+    pub variant: Vec<String>,
+    /// Wall-time budget per variant (seconds, training only; evaluation is not counted).
+    #[arg(long, default_value_t = 300.0)]
+    pub seconds: f64,
+    /// Iteration cap per variant.
+    #[arg(long, default_value_t = 100_000)]
+    pub max_iterations: u64,
+    /// Measure the mesh every N iterations.
+    #[arg(long, default_value_t = 50)]
+    pub eval_every: u64,
+    /// Marching grid resolution for the measurements.
+    #[arg(long, default_value_t = 128)]
+    pub mesh_resolution: usize,
+    /// Integer image downscale factor.
+    #[arg(long, default_value_t = 1)]
+    pub downscale: usize,
+    /// Override the field's learning rate (default: the preset's).
+    #[arg(long)]
+    pub lr_field: Option<f32>,
+    /// Override the rays per iteration (default: the preset's).
+    #[arg(long)]
+    pub rays: Option<usize>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct CurvePoint {
+    pub scene: String,
+    pub variant: String,
+    pub backend: String,
+    pub step: u64,
+    pub wall_seconds: f64,
+    pub chamfer_rel: f64,
+    pub normal_consistency: f64,
+}
+
+/// The field in the normalised frame (no asset rotation), for measuring.
+struct Normalised<'a> {
+    f: &'a (dyn Fn(&[f32]) -> Result<Vec<f32>, crate::backend::BackendError> + Sync),
+}
+
+impl MeshSdf for Normalised<'_> {
+    fn name(&self) -> String {
+        "measured field".into()
+    }
+    fn bounds(&self) -> Aabb {
+        Aabb::cube(1.0)
+    }
+    fn eval(&self, _backend: &Backend, points: &[[f32; 3]]) -> Result<SdfSamples, crate::backend::BackendError> {
+        let values = (self.f)(bytemuck::cast_slice(points))?;
+        Ok(SdfSamples { gradients: vec![[0.0; 3]; values.len()], values })
+    }
+    fn eval_grid(&self, _backend: &Backend, grid: &crate::mesh::grid::GridSpec) -> Result<Vec<f32>, crate::backend::BackendError> {
+        let [nx, ny, nz] = grid.dims;
+        let mut pts = Vec::with_capacity(nx * ny * nz * 3);
+        for z in 0..nz {
+            for y in 0..ny {
+                for x in 0..nx {
+                    pts.extend(grid.node(x, y, z));
+                }
+            }
+        }
+        (self.f)(&pts)
+    }
+}
+
+/// Chamfer (relative to the GT's size) and normal consistency of the field's zero level against
+/// `gt` (normalised frame).
+fn measure(backend: &Backend, f: &(dyn Fn(&[f32]) -> Result<Vec<f32>, crate::backend::BackendError> + Sync), gt: &crate::eval::mesh::Mesh, gt_size: f64, res: usize) -> (f64, f64) {
+    let field = Normalised { f };
+    let grid = crate::mesh::grid::GridSpec::over(&Aabb::cube(1.0), res);
+    let Ok((values, _)) = crate::mesh::sample_grid(backend, &field, &grid) else {
+        return (f64::NAN, f64::NAN);
+    };
+    let mesh = crate::mesh::extract::marching_tetrahedra(&grid, &values);
+    let (mesh, _) = crate::mesh::topology::largest_component(&mesh);
+    if mesh.triangle_count() == 0 {
+        return (f64::NAN, f64::NAN);
+    }
+    let pred = crate::eval::mesh::Mesh {
+        positions: mesh.positions.iter().map(|p| DVec3::from(p.map(f64::from))).collect(),
+        triangles: mesh.indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect(),
+    };
+    let m = crate::eval::mesh::compare_meshes(&pred, gt, 20_000, 1);
+    (m.chamfer / gt_size, m.normal_consistency)
+}
+
+fn parse_variant(s: &str) -> anyhow::Result<(Preset, TraceMode, InitMode)> {
+    let parts: Vec<&str> = s.split('-').collect();
+    let bad = || anyhow::anyhow!("variant {s:?}: expected preset-tracing-init, e.g. fast-refined-hull");
+    if parts.len() != 3 {
+        return Err(bad());
+    }
+    let p = match parts[0] {
+        "fast" => Preset::Fast,
+        "paper" => Preset::Paper,
+        _ => return Err(bad()),
+    };
+    let t = match parts[1] {
+        "refined" => TraceMode::Refined,
+        "classic" => TraceMode::Classic,
+        _ => return Err(bad()),
+    };
+    let i = match parts[2] {
+        "hull" => InitMode::Hull,
+        "sphere" => InitMode::Sphere,
+        _ => return Err(bad()),
+    };
+    Ok((p, t, i))
+}
+
+pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
+    crate::export::check_writable(&args.out)?;
+    let backend = ctx.backend()?;
+    let scenes: Vec<PathBuf> = if args.scene.is_empty() { vec![Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/example")] } else { args.scene.clone() };
+    let variants: Vec<String> = if args.variant.is_empty() {
+        ["fast-refined-hull", "fast-classic-hull", "fast-refined-sphere", "fast-classic-sphere", "paper-refined-hull"].iter().map(|s| s.to_string()).collect()
+    } else {
+        args.variant.clone()
+    };
+    let parsed: Vec<_> = variants.iter().map(|v| parse_variant(v)).collect::<anyhow::Result<_>>()?;
+    let mut points: Vec<CurvePoint> = Vec::new();
+    let mut summary = Vec::new();
+    for scene_path in &scenes {
+        let scene = crate::scene::load(scene_path, &ReadOptions { downscale: args.downscale.max(1) })?;
+        let gt_path = ["gt/mesh.obj", "gt/mesh.ply"].iter().map(|r| scene_path.join(r)).find(|p| p.is_file());
+        let Some(gt_path) = gt_path else {
+            anyhow::bail!("{}: no ground-truth mesh (gt/mesh.obj or gt/mesh.ply) to measure against", scene_path.display());
+        };
+        let mut gt = crate::eval::mesh::Mesh::read(&gt_path)?;
+        for p in &mut gt.positions {
+            *p = scene.normalisation.to_normalised(*p);
+        }
+        let (lo, hi) = gt.positions.iter().fold((DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY)), |(a, b), p| (a.min(*p), b.max(*p)));
+        let gt_size = (hi - lo).max_element();
+        let sname = scene_path.file_name().map(|s| s.to_string_lossy().to_string()).unwrap_or_default();
+        let (views, held) = train_views(&scene);
+        let data = TrainData::new(&views, 1.0)?;
+
+        // Baseline: the visual hull, as the preview bake carves it.
+        let t = Instant::now();
+        let adapters: Vec<ViewAdapter> = views.iter().map(|v| ViewAdapter::new(v)).collect();
+        let mv: Vec<&dyn MaskView> = adapters.iter().map(|a| a as &dyn MaskView).collect();
+        let base_cfg = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Hull, &views, held.len(), args.downscale);
+        let hres = base_cfg.sizes.hull_resolution;
+        let grid = smooth(signed_distance(&carve(&mv, hres, 1.0, 0.5, (views.len() / 2).max(1)), hres, 1.0));
+        let hull_secs = t.elapsed().as_secs_f64();
+        let hf = |p: &[f32]| Ok(p.chunks_exact(3).map(|q| grid.sample([q[0], q[1], q[2]])).collect());
+        let (hc, hn) = measure(&backend, &hf, &gt, gt_size, args.mesh_resolution);
+        ctx.say(format!("{sname}: visual hull {hres}^3: Chamfer {:.3}% of size, normal consistency {hn:.4} [{hull_secs:.1} s]", 100.0 * hc));
+        points.push(CurvePoint { scene: sname.clone(), variant: "hull (preview)".into(), backend: "cpu".into(), step: 0, wall_seconds: hull_secs, chamfer_rel: hc, normal_consistency: hn });
+        let target = 0.5 * hc;
+
+        for (name, &(preset, mode, init)) in variants.iter().zip(&parsed) {
+            let mut cfg = Stage1Config::for_scene(preset, mode, init, &views, held.len(), args.downscale);
+            cfg.iterations = args.max_iterations.min(cfg.iterations.max(1));
+            if let Some(lr) = args.lr_field {
+                cfg.lr_field = lr;
+            }
+            if let Some(r) = args.rays {
+                cfg.rays = r;
+            }
+            let mut tr = Trainer::new(cfg.clone())?;
+            let mut wall = 0.0f64;
+            if init == InitMode::Hull {
+                let t = Instant::now();
+                tr.fit_to_grid(&backend, &grid, cfg.hull_fit_steps, |_, _| {})?;
+                wall += t.elapsed().as_secs_f64();
+            }
+            let mut reached: Option<f64> = None;
+            let mut record = |tr: &Trainer, wall: f64, points: &mut Vec<CurvePoint>| {
+                let f = |p: &[f32]| tr.model.sdf(&backend, p);
+                let (c, n) = measure(&backend, &f, &gt, gt_size, args.mesh_resolution);
+                if reached.is_none() && c <= target {
+                    reached = Some(wall);
+                }
+                ctx.say(format!("{sname} {name}: step {} at {wall:.1} s: Chamfer {:.3}%, NC {n:.4}", tr.step, 100.0 * c));
+                points.push(CurvePoint { scene: sname.clone(), variant: name.clone(), backend: backend.name().into(), step: tr.step, wall_seconds: wall, chamfer_rel: c, normal_consistency: n });
+                (c, n)
+            };
+            record(&tr, wall, &mut points);
+            let t_loop = Instant::now();
+            let mut train_secs = 0.0;
+            let mut last = (f64::NAN, f64::NAN);
+            while tr.step < cfg.iterations && wall < args.seconds {
+                let t = Instant::now();
+                tr.train_step(&backend, &data)?;
+                let dt = t.elapsed().as_secs_f64();
+                wall += dt;
+                train_secs += dt;
+                if tr.step % args.eval_every == 0 {
+                    last = record(&tr, wall, &mut points);
+                }
+            }
+            if tr.step % args.eval_every != 0 {
+                last = record(&tr, wall, &mut points);
+            }
+            let _ = t_loop;
+            let held_views: Vec<&View> = if held.is_empty() { views.iter().take(4).copied().collect() } else { held.iter().take(8).copied().collect() };
+            let ev = evaluate_views(&backend, &tr.model, &cfg.trace, &held_views, 128 * 128)?;
+            summary.push(serde_json::json!({
+                "scene": sname, "variant": name, "backend": backend.describe(),
+                "iterations": tr.step, "it_per_s": tr.step as f64 / train_secs.max(1e-9), "wall_seconds": wall,
+                "chamfer_rel": last.0, "normal_consistency": last.1, "hull_chamfer_rel": hc, "hull_normal_consistency": hn,
+                "seconds_to_half_hull_chamfer": reached, "held_out_psnr": ev.psnr, "mask_iou": ev.mask_iou, "skipped_steps": tr.skipped,
+            }));
+        }
+    }
+    let mut csv = String::from("scene,variant,backend,step,wall_seconds,chamfer_rel,normal_consistency\n");
+    for p in &points {
+        csv.push_str(&format!("{},{},{},{},{:.3},{:.6},{:.5}\n", p.scene, p.variant, p.backend, p.step, p.wall_seconds, p.chamfer_rel, p.normal_consistency));
+    }
+    crate::util::atomic_write(&args.out.join("bench-train.csv"), csv.as_bytes())?;
+    let json = serde_json::json!({ "machine_threads": rayon::current_num_threads(), "summary": summary, "points": points });
+    crate::util::atomic_write(&args.out.join("bench-train.json"), serde_json::to_string_pretty(&json)?.as_bytes())?;
+    crate::util::atomic_write(&args.out.join("bench-train.svg"), chart(&points)?.as_bytes())?;
+    for s in &summary {
+        ctx.say(s.to_string());
+    }
+    ctx.emit("bench_train", json);
+    ctx.say(format!("wrote {}/bench-train.{{csv,json,svg}}", args.out.display()));
+    Ok(())
+}
+
+fn chart(points: &[CurvePoint]) -> anyhow::Result<String> {
+    use plotters::prelude::*;
+    let mut series: Vec<(String, String)> = Vec::new();
+    for p in points {
+        let k = (p.scene.clone(), p.variant.clone());
+        if !series.contains(&k) {
+            series.push(k);
+        }
+    }
+    let ok: Vec<&CurvePoint> = points.iter().filter(|p| p.chamfer_rel.is_finite() && p.chamfer_rel > 0.0).collect();
+    let tmax = ok.iter().map(|p| p.wall_seconds).fold(1.0, f64::max) * 1.05;
+    let cmin = ok.iter().map(|p| 100.0 * p.chamfer_rel).fold(f64::INFINITY, f64::min).max(1e-4) * 0.8;
+    let cmax = ok.iter().map(|p| 100.0 * p.chamfer_rel).fold(0.0, f64::max).max(cmin * 2.0) * 1.25;
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (900, 600)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| anyhow::anyhow!("chart: {e}"))?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption("stage 1: Chamfer vs wall time (training only)", ("sans-serif", 20))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(60)
+            .build_cartesian_2d(0.0..tmax, (cmin..cmax).log_scale())
+            .map_err(|e| anyhow::anyhow!("chart: {e}"))?;
+        chart
+            .configure_mesh()
+            .x_desc("wall time (s)")
+            .y_desc("Chamfer (% of object size)")
+            .y_label_formatter(&|v| format!("{v:.2}"))
+            .draw()
+            .map_err(|e| anyhow::anyhow!("chart: {e}"))?;
+        for (i, (s, v)) in series.iter().enumerate() {
+            let color = Palette99::pick(i).to_rgba();
+            let pts: Vec<(f64, f64)> = ok.iter().filter(|p| &p.scene == s && &p.variant == v).map(|p| (p.wall_seconds, 100.0 * p.chamfer_rel)).collect();
+            chart
+                .draw_series(LineSeries::new(pts.clone(), color.stroke_width(1)))
+                .map_err(|e| anyhow::anyhow!("chart: {e}"))?
+                .label(format!("{s} {v}"))
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], color.stroke_width(2)));
+            chart.draw_series(pts.iter().map(|&p| Circle::new(p, 3, color.filled()))).map_err(|e| anyhow::anyhow!("chart: {e}"))?;
+        }
+        chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(|e| anyhow::anyhow!("chart: {e}"))?;
+        root.present().map_err(|e| anyhow::anyhow!("chart: {e}"))?;
+    }
+    Ok(svg)
+}
