@@ -32,6 +32,8 @@ fn bake_example_writes_a_valid_asset_close_to_the_ground_truth() {
         ex.to_str().unwrap(),
         "--out",
         out.to_str().unwrap(),
+        "--preset",
+        "preview",
         "--hull-resolution",
         "96",
         "--resolution",
@@ -43,7 +45,7 @@ fn bake_example_writes_a_valid_asset_close_to_the_ground_truth() {
     ]);
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(o.status.success(), "{stdout}{}", String::from_utf8_lossy(&o.stderr));
-    assert!(stdout.contains("preview bake") && stdout.contains("not implemented yet"), "says what it did: {stdout}");
+    assert!(stdout.contains("preview bake") && stdout.contains("no training"), "says what it did: {stdout}");
     for f in ["spot.glb", "asset.usda", "payload.usda", "lookdev.usda", "env.exr", "env_sgs.json", "bake_report.json", "textures/albedo.png", "textures/orm.png"] {
         assert!(out.join(f).is_file(), "{f} missing");
     }

@@ -54,7 +54,7 @@ fn resumed_run_follows_the_straight_run_and_exports() {
     assert!(o.status.success(), "{}", text(&o));
     let out = text(&o);
     assert!(out.contains("stage 1") && out.contains("PSNR") && out.contains("mask IoU"), "{out}");
-    let o = train(&b, &["--iterations", "3", "--checkpoint-every", "3"]);
+    let o = train(&b, &["--iterations", "6", "--checkpoint-every", "3", "--stop-at", "3"]);
     assert!(o.status.success(), "{}", text(&o));
     let o = train(&b, &["--iterations", "6", "--checkpoint-every", "3", "--resume"]);
     assert!(o.status.success(), "{}", text(&o));

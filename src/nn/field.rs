@@ -29,6 +29,10 @@ pub trait Encoder: Send + Sync + std::fmt::Debug {
     fn forward(&self, params: &[f32], x: &[f32]) -> Vec<f32>;
     /// `dL/dparams` from `dL/d(encoding)` `[n, out_dim]`.
     fn backward_params(&self, params: &[f32], x: &[f32], d_enc: &[f32]) -> Vec<f32>;
+    /// Coarse-to-fine training (Neuralangelo): only the first `levels` grid levels feed the
+    /// MLP (the others output 0 and receive no gradient); `None` = all. Encoders without levels
+    /// ignore it.
+    fn set_active_levels(&mut self, _levels: Option<usize>) {}
 }
 
 /// The field's position encoding, computed by the cpu twins of `nn::encoding`:
@@ -41,6 +45,8 @@ pub struct PositionEncoder {
     pub encoding: EncodingConfig,
     /// Prepend the raw position to the encoding's output.
     pub raw_xyz: bool,
+    /// Hash-grid levels that feed the MLP (coarse to fine); `None` = all.
+    pub active_levels: Option<usize>,
 }
 
 impl PositionEncoder {
@@ -50,6 +56,16 @@ impl PositionEncoder {
         } else {
             0
         }
+    }
+
+    /// Columns `[start, end)` of the encoded row that belong to inactive grid levels.
+    fn inactive_columns(&self) -> Option<(usize, usize)> {
+        let EncodingConfig::HashGrid { levels, features_per_level, .. } = self.encoding else {
+            return None;
+        };
+        let active = self.active_levels?.min(levels as usize);
+        let f = features_per_level as usize;
+        (active < levels as usize).then(|| (self.raw_dim() + active * f, self.raw_dim() + levels as usize * f))
     }
 }
 
@@ -68,14 +84,20 @@ impl Encoder for PositionEncoder {
     }
     fn forward(&self, params: &[f32], x: &[f32]) -> Vec<f32> {
         let enc = encoding_forward_cpu(&self.encoding, params, x, 3);
-        if !self.raw_xyz {
-            return enc;
-        }
-        let ed = self.encoding.out_dim(3);
-        let mut out = Vec::with_capacity(x.len() / 3 * self.out_dim());
-        for (p, f) in x.chunks_exact(3).zip(enc.chunks_exact(ed)) {
-            out.extend_from_slice(p);
-            out.extend_from_slice(f);
+        let mut out = if !self.raw_xyz {
+            enc
+        } else {
+            let ed = self.encoding.out_dim(3);
+            let mut out = Vec::with_capacity(x.len() / 3 * self.out_dim());
+            for (p, f) in x.chunks_exact(3).zip(enc.chunks_exact(ed)) {
+                out.extend_from_slice(p);
+                out.extend_from_slice(f);
+            }
+            out
+        };
+        if let Some((a, b)) = self.inactive_columns() {
+            let od = self.out_dim();
+            out.chunks_exact_mut(od).for_each(|r| r[a..b].fill(0.0));
         }
         out
     }
@@ -84,8 +106,20 @@ impl Encoder for PositionEncoder {
             return Vec::new();
         }
         let (od, rd) = (self.out_dim(), self.raw_dim());
-        let d: Vec<f32> = d_enc.chunks_exact(od).flat_map(|r| r[rd..].iter().copied()).collect();
+        let cut = self.inactive_columns();
+        let d: Vec<f32> = d_enc
+            .chunks_exact(od)
+            .flat_map(|r| {
+                r[rd..].iter().enumerate().map(move |(j, &v)| match cut {
+                    Some((a, b)) if (a..b).contains(&(j + rd)) => 0.0,
+                    _ => v,
+                })
+            })
+            .collect();
         encoding_backward_cpu(&self.encoding, params, x, 3, &d, false).0
+    }
+    fn set_active_levels(&mut self, levels: Option<usize>) {
+        self.active_levels = levels;
     }
 }
 
@@ -126,7 +160,7 @@ impl FieldEncoding {
     /// The field's encoder: the hash grid is fed with the raw position beside it (NeuS2).
     pub fn encoder(&self) -> PositionEncoder {
         let raw_xyz = matches!(self, FieldEncoding::HashGrid { .. });
-        PositionEncoder { encoding: self.encoding_config(), raw_xyz }
+        PositionEncoder { encoding: self.encoding_config(), raw_xyz, active_levels: None }
     }
 
     /// Width of the MLP's input: the encoded 3-D position (raw xyz included).
@@ -576,6 +610,7 @@ mod grid_tests {
     fn hash_grid_encoder_backward_matches_finite_differences() {
         let enc = PositionEncoder {
             raw_xyz: true,
+            active_levels: None,
             encoding: EncodingConfig::HashGrid {
                 levels: 3,
                 features_per_level: 2,

@@ -56,6 +56,9 @@ pub struct BenchTrainArgs {
     /// Override the rays per iteration (default: the preset's).
     #[arg(long)]
     pub rays: Option<usize>,
+    /// Override any stage-1 setting by its name in run.json's config, e.g. `--set mask_weight=10`.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    pub overrides: Vec<String>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -195,6 +198,7 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
             if let Some(r) = args.rays {
                 cfg.rays = r;
             }
+            cfg = super::stage1::apply_overrides(cfg, &args.overrides)?;
             let mut tr = Trainer::new(cfg.clone())?;
             let mut wall = 0.0f64;
             if init == InitMode::Hull {

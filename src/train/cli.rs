@@ -78,6 +78,10 @@ pub struct TrainArgs {
     /// Continue the run in `--out` from its last checkpoint.
     #[arg(long)]
     pub resume: bool,
+    /// Stop at this step with a checkpoint, keeping the schedule of the full run (`--resume`
+    /// continues it exactly): for time-boxed sessions.
+    #[arg(long)]
+    pub stop_at: Option<u64>,
 }
 
 /// What `export --run` needs from a run besides its checkpoint (written to `run.json`'s side).
@@ -163,6 +167,7 @@ pub fn train_stage1(
     opts: &TrainOptions,
     run_dir: &Path,
     resume: bool,
+    stop_at: Option<u64>,
     backend: &Backend,
     ctx: &Context,
 ) -> anyhow::Result<Stage1Run> {
@@ -276,7 +281,8 @@ pub fn train_stage1(
     let t_loop = Instant::now();
     let step0 = trainer.step;
     let mut last = StepStats::default();
-    while trainer.step < cfg.iterations {
+    let end = stop_at.unwrap_or(cfg.iterations).min(cfg.iterations);
+    while trainer.step < end {
         let ts = Instant::now();
         let s = trainer.train_step(backend, &data)?;
         curve.push(curve_line(&s, ts.elapsed().as_secs_f64()));
@@ -286,7 +292,7 @@ pub fn train_stage1(
         ctx.emit("progress", serde_json::json!({ "stage": "geometry", "iterations": cfg.iterations, "it_per_s": its, "skipped": trainer.skipped, "stats": s }));
         last = s;
         let interrupted = stop.load(Ordering::SeqCst);
-        if trainer.step % cfg.checkpoint_every == 0 || trainer.step == cfg.iterations || interrupted {
+        if trainer.step % cfg.checkpoint_every == 0 || trainer.step == end || interrupted {
             trainer.save(run_dir, &key)?;
             write_curve(run_dir, &curve)?;
         }
@@ -429,7 +435,7 @@ pub fn run(args: &TrainArgs, ctx: &Context) -> anyhow::Result<()> {
     let backend = ctx.backend()?;
     match args.stage {
         Stage::Geometry => {
-            let r = train_stage1(&args.scene, &args.opts, &args.out, args.resume, &backend, ctx)?;
+            let r = train_stage1(&args.scene, &args.opts, &args.out, args.resume, args.stop_at, &backend, ctx)?;
             ctx.emit("train", r.report);
             ctx.say(format!("run written to {} (export it with `pii-bake export --run {} --out <asset-dir>`)", args.out.display(), args.out.display()));
             Ok(())
@@ -641,7 +647,7 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
         "bake: stage 1 (trained SDF geometry, {} preset) + a radiance preview for textures (the photos' lighting is not removed yet: stage 2 is not implemented)",
         preset.name()
     ));
-    let run = train_stage1(&args.scene, &opts, &run_dir, true, &backend, ctx)?;
+    let run = train_stage1(&args.scene, &opts, &run_dir, true, None, &backend, ctx)?;
     let name = args.asset.name.clone().unwrap_or_else(|| super::preview::name_from_path(&args.scene));
     let t = Instant::now();
     let mut exp = run.trainer.cfg.clone();

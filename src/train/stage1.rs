@@ -6,9 +6,12 @@
 //! 1. trace every ray through the current field ([`crate::render::trace`], no gradient);
 //! 2. *surface rays* (hit and inside the mask): colour `c = R(x, PE4(−v), ∇f(x), feature(x))`,
 //!    L1 against the photo (sRGB values, as IDR);
-//! 3. *mask rays* (the others): BCE on `sigmoid(−α·f(x_min))` against the mask, `x_min` the
-//!    min-SDF point along the ray (from the tracer's sampler, or sampled along the segment for
-//!    hits outside the mask), weight `mask_weight/α`, α doubled at fixed fractions of the run;
+//! 3. *mask rays* (the others): BCE on `sigmoid(−α·f(x_m))` against the mask, weight
+//!    `mask_weight/α`, α doubled at fixed fractions of the run. `x_m` is the min-SDF point along
+//!    a ray that missed (from the tracer's sampler); for a ray that hit outside the mask it is the
+//!    min-SDF point along the ray in the paper preset (IDR) and the hit itself in the fast preset
+//!    ([`Stage1Config::out_of_mask_min_sdf`]: IDR's point lies deep inside the object, where a
+//!    hash grid's local cells only grow interior bubbles; the hit moves the wrong silhouette);
 //! 4. eikonal `(|∇f| − 1)²` at uniform points in the bounding cube and at the surface points;
 //! 5. one batched first-order backward through the field ([`SdfField::value_and_grad`]: normals
 //!    are central differences, so no second-order pass is needed) and the radiance net, then Adam.
@@ -111,10 +114,21 @@ pub struct Stage1Config {
     pub alpha_doublings: Vec<f32>,
     /// Samples along a mask ray that hit outside the mask.
     pub mask_samples: usize,
+    /// For a ray that hits outside the mask, the mask term's point: the min-SDF point along the
+    /// ray (IDR; deep inside the object, which moves a global MLP's whole shape) or, when false,
+    /// the hit itself (moves the surface where the silhouette is wrong: what a local hash grid needs).
+    pub out_of_mask_min_sdf: bool,
     /// Fraction of each batch drawn from the masks' foreground pixels (the rest: all pixels).
     pub foreground_fraction: f32,
     /// Eikonal points jittered around the surface points (normal deviation, normalised units).
     pub near_surface_sigma: f32,
+    /// Coarse to fine (hash grid): this fraction of the levels is active at the start (and in
+    /// the hull fit), all of them from `coarse_to_fine_end` of the run on (linear in between).
+    pub coarse_levels: f32,
+    pub coarse_to_fine_end: f32,
+    /// The SDF is held fixed for this fraction of the run while the radiance net learns the
+    /// colours (before that, colour gradients only move the surface at random).
+    pub radiance_warmup: f32,
     pub seed: u64,
     pub checkpoint_every: u64,
     pub downscale: usize,
@@ -163,7 +177,7 @@ impl Stage1Config {
                     hull_fit_steps: 200,
                     rays: 1024,
                     iterations: 1000,
-                    lr_field: 5e-3,
+                    lr_field: 2e-4,
                     lr_radiance: 5e-3,
                     lr_final_factor: 0.1,
                     eikonal_weight: 0.1,
@@ -172,8 +186,12 @@ impl Stage1Config {
                     alpha_init: 50.0,
                     alpha_doublings: vec![0.125, 0.25, 0.375, 0.5, 0.625],
                     mask_samples: 32,
+                    out_of_mask_min_sdf: false,
                     foreground_fraction: 0.5,
                     near_surface_sigma: 0.02,
+                    coarse_levels: 0.5,
+                    coarse_to_fine_end: 0.5,
+                    radiance_warmup: 0.1,
                     seed: 0,
                     checkpoint_every: 100,
                     downscale,
@@ -199,8 +217,12 @@ impl Stage1Config {
                 alpha_init: 50.0,
                 alpha_doublings: vec![0.125, 0.25, 0.375, 0.5, 0.625],
                 mask_samples: 100,
+                out_of_mask_min_sdf: true,
                 foreground_fraction: 0.5,
                 near_surface_sigma: 0.02,
+                coarse_levels: 0.5,
+                coarse_to_fine_end: 0.5,
+                radiance_warmup: 0.1,
                 seed: 0,
                 checkpoint_every: 50,
                 downscale,
@@ -230,6 +252,18 @@ impl Stage1Config {
         self.alpha_init * 2f32.powi(self.alpha_doublings.iter().filter(|&&d| frac >= d).count() as i32)
     }
 
+    /// Hash-grid levels active at `step` (None: the encoding has no levels, or all are active).
+    pub fn active_levels_at(&self, step: u64) -> Option<usize> {
+        let FieldEncoding::HashGrid { levels, .. } = self.field.encoding else {
+            return None;
+        };
+        let frac = step as f32 / self.iterations.max(1) as f32;
+        let t = if self.coarse_to_fine_end > 0.0 { (frac / self.coarse_to_fine_end).min(1.0) } else { 1.0 };
+        let start = (self.coarse_levels.clamp(0.0, 1.0) * levels as f32).ceil().max(1.0);
+        let n = (start + t * (levels as f32 - start)).floor() as usize;
+        (n < levels).then_some(n)
+    }
+
     /// Learning-rate factor at `step` (exponential from 1 to `lr_final_factor`).
     pub fn lr_factor(&self, step: u64) -> f32 {
         let frac = (step as f32 / self.iterations.max(1) as f32).min(1.0);
@@ -248,6 +282,24 @@ impl Stage1Config {
             weight_norm: false,
         }
     }
+}
+
+/// `KEY=VALUE` overrides of top-level config fields (VALUE parsed as JSON, else a string).
+pub fn apply_overrides(cfg: Stage1Config, overrides: &[String]) -> Result<Stage1Config, BackendError> {
+    if overrides.is_empty() {
+        return Ok(cfg);
+    }
+    let mut v = serde_json::to_value(&cfg).map_err(|e| BackendError::Config(e.to_string()))?;
+    for o in overrides {
+        let Some((k, val)) = o.split_once('=') else {
+            return Err(BackendError::Config(format!("override {o:?}: expected KEY=VALUE")));
+        };
+        let slot = v.get_mut(k).ok_or_else(|| BackendError::Config(format!("override {o:?}: no setting named {k:?}")))?;
+        *slot = serde_json::from_str(val).unwrap_or_else(|_| serde_json::Value::String(val.to_string()));
+    }
+    let out: Stage1Config = serde_json::from_value(v).map_err(|e| BackendError::Config(format!("overrides {overrides:?}: {e}")))?;
+    out.validate()?;
+    Ok(out)
 }
 
 /// Mean photo pixel footprint (normalised units) at the distance of the scene centre.
@@ -465,6 +517,8 @@ pub struct LossSettings {
     pub near_surface_sigma: f32,
     /// Also apply the eikonal term at the traced surface points (held fixed, as IDR).
     pub surface_eikonal: bool,
+    /// See [`Stage1Config::out_of_mask_min_sdf`].
+    pub out_of_mask_min_sdf: bool,
 }
 
 /// Step size of the central difference for `∂c/∂x·v`.
@@ -492,7 +546,8 @@ pub fn loss_and_grad(
 
     // Min-SDF points: the tracer's for misses; sampled along the segment for hits outside the mask.
     let mut x_min: Vec<[f32; 3]> = mask_rays.iter().map(|&i| tr.points[i]).collect();
-    let hit_out: Vec<usize> = (0..mask_rays.len()).filter(|&k| tr.hit[mask_rays[k]]).collect();
+    let hit_out: Vec<usize> =
+        if ls.out_of_mask_min_sdf { (0..mask_rays.len()).filter(|&k| tr.hit[mask_rays[k]]).collect() } else { Vec::new() };
     if !hit_out.is_empty() {
         let mut r = Rays::default();
         let (mut t0, mut t1) = (Vec::new(), Vec::new());
@@ -697,6 +752,8 @@ impl Trainer {
 
     /// One photometric iteration.
     pub fn train_step(&mut self, backend: &Backend, data: &TrainData) -> Result<StepStats, BackendError> {
+        let levels = self.cfg.active_levels_at(self.step);
+        self.model.field.encoder.set_active_levels(levels);
         let mut rng = self.step_rng(self.step);
         let batch = data.sample(&mut rng, self.cfg.rays, self.cfg.foreground_fraction);
         let b = self.cfg.trace.bound;
@@ -711,11 +768,13 @@ impl Trainer {
             mask_samples: self.cfg.mask_samples,
             near_surface_sigma: self.cfg.near_surface_sigma,
             surface_eikonal: true,
+            out_of_mask_min_sdf: self.cfg.out_of_mask_min_sdf,
         };
         let jitter = rng.random_range(0.0f32..1.0);
         let g = loss_and_grad(backend, &self.model, &self.cfg.trace, &batch, &eik, &ls, jitter)?;
         let f = self.cfg.lr_factor(self.step);
-        let (lf, lr) = (self.cfg.lr_field * f, self.cfg.lr_radiance * f);
+        let warm = (self.step as f32) < self.cfg.radiance_warmup * self.cfg.iterations as f32;
+        let (lf, lr) = (if warm { 0.0 } else { self.cfg.lr_field * f }, self.cfg.lr_radiance * f);
         let (applied, norm) = if g.stats.loss.is_finite() { self.apply(g.d_sdf, g.d_radiance, lf, lr)? } else {
             self.skipped += 1;
             (false, f64::NAN)
@@ -735,6 +794,8 @@ impl Trainer {
             .map(|i| grid.centre(i % grid.res, (i / grid.res) % grid.res, i / (grid.res * grid.res)))
             .collect();
         let mut last = f64::NAN;
+        let levels = self.cfg.active_levels_at(0);
+        self.model.field.encoder.set_active_levels(levels);
         // The fit has its own optimiser state: photometric training starts with fresh moments.
         let mut fit_state = AdamState::new(&self.host, self.model.sdf_params.len());
         let h = grid.spacing();
@@ -840,6 +901,8 @@ impl Trainer {
             t.adam_radiance = s;
         }
         t.step = st.step().unwrap_or(0);
+        let levels = t.cfg.active_levels_at(t.step);
+        t.model.field.encoder.set_active_levels(levels);
         t.skipped = st.metadata.get("skipped").and_then(|s| s.parse().ok()).unwrap_or(0);
         Ok((t, scene))
     }
