@@ -59,8 +59,93 @@ fn is_exr(path: &Path) -> bool {
     path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr"))
 }
 
+/// Largest width or height an image file may declare.
+pub const MAX_IMAGE_SIDE: usize = 1 << 16;
+/// Largest pixel count an image file may declare (16384 × 8192, a 16k latlong map; 134 MP photos).
+pub const MAX_IMAGE_PIXELS: usize = 16384 * 8192;
+
+/// Check a size an image file declares against [`MAX_IMAGE_SIDE`] and [`MAX_IMAGE_PIXELS`].
+pub fn check_declared_size(path: &Path, width: usize, height: usize) -> Result<(), DataError> {
+    if width == 0 || height == 0 {
+        return Err(DataError::new(path, format!("image declares an empty size {width}x{height}")));
+    }
+    let pixels = width.checked_mul(height);
+    if width > MAX_IMAGE_SIDE || height > MAX_IMAGE_SIDE || pixels.is_none_or(|p| p > MAX_IMAGE_PIXELS) {
+        return Err(DataError::new(
+            path,
+            format!(
+                "image declares a size of {width}x{height}, past the limit ({MAX_IMAGE_SIDE} per side, {MAX_IMAGE_PIXELS} pixels): damaged header?"
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// The image crate's decoding limits matching [`MAX_IMAGE_SIDE`] / [`MAX_IMAGE_PIXELS`]
+/// (16-bit RGBA is the largest layout PNG decodes to).
+fn decode_limits() -> image::Limits {
+    let mut l = image::Limits::default();
+    l.max_image_width = Some(MAX_IMAGE_SIDE as u32);
+    l.max_image_height = Some(MAX_IMAGE_SIDE as u32);
+    l.max_alloc = Some(MAX_IMAGE_PIXELS as u64 * 8 + (64 << 20));
+    l
+}
+
+fn open_reader(path: &Path) -> Result<image::ImageReader<std::io::BufReader<std::fs::File>>, DataError> {
+    image::ImageReader::open(path)
+        .map_err(|e| DataError::new(path, format!("cannot open: {e}")))?
+        .with_guessed_format()
+        .map_err(|e| DataError::new(path, format!("cannot read: {e}")))
+}
+
+/// Decode a PNG/JPEG with the size it declares checked first (against the limits and against
+/// the file's own size: deflate shrinks at most ~1032:1, JPEG gets a wide bound) and the
+/// decoder's allocations bounded.
+fn decode_limited(path: &Path) -> Result<image::DynamicImage, DataError> {
+    use image::ImageDecoder;
+    let file_len = std::fs::metadata(path).map_err(|e| DataError::new(path, format!("cannot read: {e}")))?.len();
+    let mut reader = open_reader(path)?;
+    let limits = decode_limits();
+    reader.limits(limits.clone());
+    let ratio: u64 = if reader.format() == Some(image::ImageFormat::Png) { 2048 } else { 1 << 16 };
+    let decoder = reader.into_decoder().map_err(|e| DataError::new(path, format!("not a readable image: {e}")))?;
+    let (w, h) = decoder.dimensions();
+    check_declared_size(path, w as usize, h as usize)?;
+    let total = decoder.total_bytes();
+    if total > limits.max_alloc.unwrap_or(u64::MAX) || total / ratio > file_len {
+        return Err(DataError::new(
+            path,
+            format!("image declares {w}x{h} pixels ({total} bytes decoded) but the file holds only {file_len} bytes: damaged header or truncated file"),
+        ));
+    }
+    image::DynamicImage::from_decoder(decoder).map_err(|e| DataError::new(path, format!("not a readable image: {e}")))
+}
+
+/// The size a PNG/JPEG declares (header only).
+fn png_jpeg_size(path: &Path) -> Result<(usize, usize), DataError> {
+    let mut reader = open_reader(path)?;
+    // The header only: the size is checked by the caller, with a message naming it.
+    reader.no_limits();
+    let (w, h) = reader
+        .into_dimensions()
+        .map_err(|e| DataError::new(path, format!("not a readable image: {e}")))?;
+    Ok((w as usize, h as usize))
+}
+
+/// The size of an image file from its header (no pixel decoding), checked against the limits.
+pub fn image_dimensions(path: &Path) -> Result<(usize, usize), DataError> {
+    if !path.exists() {
+        return Err(DataError::new(path, "file not found"));
+    }
+    let (w, h) = if is_exr(path) { exr_rgba_size(path)? } else { png_jpeg_size(path)? };
+    check_declared_size(path, w, h)?;
+    Ok((w, h))
+}
+
 /// Read an image as linear float. PNG/JPEG colour is sRGB-decoded (alpha stays linear);
-/// EXR is read as stored (linear). Keeps alpha when the file has it.
+/// EXR is read as stored (linear). Keeps alpha when the file has it. The size the file declares
+/// is checked against [`MAX_IMAGE_SIDE`] / [`MAX_IMAGE_PIXELS`] (and, for EXR, against the file's
+/// own size) before anything is allocated.
 pub fn read_image_linear(path: &Path) -> Result<ImageF32, DataError> {
     if !path.exists() {
         return Err(DataError::new(path, "file not found"));
@@ -68,12 +153,7 @@ pub fn read_image_linear(path: &Path) -> Result<ImageF32, DataError> {
     if is_exr(path) {
         return read_exr(path);
     }
-    let img = image::ImageReader::open(path)
-        .map_err(|e| DataError::new(path, format!("cannot open: {e}")))?
-        .with_guessed_format()
-        .map_err(|e| DataError::new(path, format!("cannot read: {e}")))?
-        .decode()
-        .map_err(|e| DataError::new(path, format!("not a readable image: {e}")))?;
+    let img = decode_limited(path)?;
     let has_alpha = img.color().has_alpha();
     let (w, h) = (img.width() as usize, img.height() as usize);
     let rgba = img.to_rgba32f();
@@ -99,12 +179,7 @@ pub fn read_mask(path: &Path) -> Result<(usize, usize, Vec<f32>), DataError> {
         let m = img.data.chunks_exact(img.channels).map(|p| ((p[0] + p[1] + p[2]) / 3.0).clamp(0.0, 1.0)).collect();
         return Ok((img.width, img.height, m));
     }
-    let img = image::ImageReader::open(path)
-        .map_err(|e| DataError::new(path, format!("cannot open: {e}")))?
-        .with_guessed_format()
-        .map_err(|e| DataError::new(path, format!("cannot read: {e}")))?
-        .decode()
-        .map_err(|e| DataError::new(path, format!("not a readable image: {e}")))?;
+    let img = decode_limited(path)?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let m = if img.color().has_color() || !img.color().has_alpha() {
         img.to_rgb32f().pixels().map(|p| (p[0] + p[1] + p[2]) / 3.0).collect()
@@ -114,8 +189,78 @@ pub fn read_mask(path: &Path) -> Result<(usize, usize, Vec<f32>), DataError> {
     Ok((w, h, m))
 }
 
+/// The most a codec can shrink pixel data: a declared image needs at least
+/// `pixel bytes / ratio` bytes of file. Generous (a bound, not an estimate): RLE stores at most
+/// 128 copies in 2 bytes; deflate (ZIP, PXR24 after its 24-bit packing) at most ~1032:1; PIZ,
+/// DWA and the codecs the exr crate cannot decode get a wide bound.
+fn max_compression_ratio(c: exr::compression::Compression) -> u64 {
+    use exr::compression::Compression as C;
+    match c {
+        C::Uncompressed => 1,
+        C::RLE => 64,
+        C::B44 | C::B44A => 16,
+        C::ZIP1 | C::ZIP16 | C::PXR24 => 2048,
+        _ => 1 << 16,
+    }
+}
+
+/// Read an EXR's headers and check every layer's declared data window × channels against the
+/// pixel limits and against the file's own size, before any pixel memory is allocated.
+/// Returns the headers.
+fn check_exr_header(path: &Path) -> Result<Vec<exr::meta::header::Header>, DataError> {
+    let file_len = std::fs::metadata(path).map_err(|e| DataError::new(path, format!("cannot read: {e}")))?.len();
+    let meta = exr::meta::MetaData::read_from_file(path, false)
+        .map_err(|e| DataError::new(path, format!("not a readable EXR header: {e}")))?;
+    if meta.headers.is_empty() {
+        return Err(DataError::new(path, "EXR file has no layers"));
+    }
+    for (i, h) in meta.headers.iter().enumerate() {
+        let layer = if meta.headers.len() > 1 { format!("layer {i}: ") } else { String::new() };
+        if h.deep {
+            return Err(DataError::new(path, format!("{layer}deep EXR data is not supported")));
+        }
+        let (w, hh) = (h.layer_size.width(), h.layer_size.height());
+        check_declared_size(path, w, hh).map_err(|e| DataError::new(path, format!("{layer}data window: {}", e.problem)))?;
+        if h.channels.list.is_empty() || h.channels.list.len() > 1024 {
+            return Err(DataError::new(path, format!("{layer}{} channels declared", h.channels.list.len())));
+        }
+        // Pixel bytes of the full-resolution level (a lower bound on what the file stores).
+        let mut pixel_bytes: u64 = 0;
+        for c in &h.channels.list {
+            let (sx, sy) = (c.sampling.x().max(1) as u64, c.sampling.y().max(1) as u64);
+            let samples = (w as u64 / sx) * (hh as u64 / sy);
+            pixel_bytes = pixel_bytes.saturating_add(samples.saturating_mul(c.sample_type.bytes_per_sample() as u64));
+        }
+        let min_len = (h.chunk_count as u64).saturating_mul(8).saturating_add(pixel_bytes / max_compression_ratio(h.compression));
+        if min_len > file_len {
+            return Err(DataError::new(
+                path,
+                format!(
+                    "{layer}declares a {w}x{hh} data window with {} channels ({pixel_bytes} bytes of pixels in {} chunks, {}) but the file holds only {file_len} bytes: damaged header or truncated file",
+                    h.channels.list.len(),
+                    h.chunk_count,
+                    h.compression
+                ),
+            ));
+        }
+    }
+    Ok(meta.headers.into_vec())
+}
+
+/// Size of the layer [`read_exr`] reads (the first one with R, G and B channels), from the header.
+fn exr_rgba_size(path: &Path) -> Result<(usize, usize), DataError> {
+    let headers = check_exr_header(path)?;
+    let has = |h: &exr::meta::header::Header, n: &str| h.channels.list.iter().any(|c| c.name.eq(n));
+    let h = headers
+        .iter()
+        .find(|h| has(h, "R") && has(h, "G") && has(h, "B"))
+        .ok_or_else(|| DataError::new(path, "EXR has no layer with R, G, B channels"))?;
+    Ok((h.layer_size.width(), h.layer_size.height()))
+}
+
 fn read_exr(path: &Path) -> Result<ImageF32, DataError> {
     use exr::prelude::*;
+    check_exr_header(path)?;
     let image = read_first_rgba_layer_from_file(
         path,
         |resolution, channels: &RgbaChannels| {
@@ -232,5 +377,30 @@ mod tests {
         assert!(err.to_string().contains("missing.png"));
         std::fs::write(dir.path().join("bad.png"), b"not a png").unwrap();
         assert!(read_image_linear(&dir.path().join("bad.png")).is_err());
+    }
+
+    /// An EXR header whose data window is past the pixel limit, or larger than the file could
+    /// hold, is refused before any pixel memory is allocated.
+    #[test]
+    fn exr_declared_window_is_checked_against_limits_and_file_size() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("w.exr");
+        write_exr_rgb(&p, 16, 8, &vec![0.5; 16 * 8 * 3]).unwrap();
+        let good = std::fs::read(&p).unwrap();
+        let attr = b"dataWindow\0box2i\0";
+        let at = good.windows(attr.len()).position(|w| w == attr).unwrap() + attr.len() + 4;
+        for (max, want) in [((1_000_000, 500_000), "1000001x500001"), ((3999, 1999), "4000x2000")] {
+            let mut b = good.clone();
+            b[at + 8..at + 12].copy_from_slice(&(max.0 as i32).to_le_bytes());
+            b[at + 12..at + 16].copy_from_slice(&(max.1 as i32).to_le_bytes());
+            std::fs::write(&p, &b).unwrap();
+            let e = read_image_linear(&p).unwrap_err().to_string();
+            assert!(e.contains("w.exr") && e.contains(want), "{e}");
+            let e = image_dimensions(&p).unwrap_err().to_string();
+            assert!(e.contains("w.exr") && e.contains(want), "{e}");
+        }
+        assert_eq!(check_declared_size(Path::new("x.png"), 65537, 1).unwrap_err().path, Path::new("x.png"));
+        assert!(check_declared_size(Path::new("x.png"), 16384, 8192).is_ok());
+        assert!(check_declared_size(Path::new("x.png"), 16384, 8193).is_err());
     }
 }

@@ -53,6 +53,61 @@ pub fn atomic_write_with(
     })
 }
 
+/// Check that `dir` can take output files before any heavy work: create it (and its parents) if
+/// missing, write a small probe file and remove it. The error names the folder.
+pub fn ensure_writable_dir(dir: &Path) -> Result<(), DataError> {
+    let dir = if dir.as_os_str().is_empty() { Path::new(".") } else { dir };
+    if dir.exists() && !dir.is_dir() {
+        return Err(DataError::new(dir, "output folder is not a folder (a file has that name)"));
+    }
+    fs::create_dir_all(dir).map_err(|e| DataError::new(dir, format!("cannot create output folder: {e}")))?;
+    let probe = dir.join(format!(".pii-bake-write-probe.{}.tmp", std::process::id()));
+    let result = fs::OpenOptions::new().write(true).create_new(true).open(&probe).and_then(|mut f| {
+        f.write_all(b"probe")?;
+        f.sync_all()
+    });
+    let removed = fs::remove_file(&probe);
+    result.map_err(|e| DataError::new(dir, format!("output folder is not writable: {e}")))?;
+    removed.map_err(|e| DataError::new(dir, format!("output folder: cannot remove the write probe: {e}")))
+}
+
+/// [`ensure_writable_dir`] for the folder an output file goes into.
+pub fn ensure_writable_parent(file: &Path) -> Result<(), DataError> {
+    ensure_writable_dir(file.parent().unwrap_or(Path::new("")))
+}
+
+/// Largest JSON (or other text) input the readers accept, in bytes.
+pub const MAX_TEXT_BYTES: u64 = 256 << 20;
+
+/// Read a whole file, refusing one larger than `max_bytes` (checked from its size before reading,
+/// and again while reading, for files that grow or lie about their size).
+pub fn read_bounded(path: &Path, max_bytes: u64) -> Result<Vec<u8>, DataError> {
+    use std::io::Read;
+    let f = fs::File::open(path).map_err(|e| DataError::new(path, format!("cannot read: {e}")))?;
+    let len = f.metadata().map_err(|e| DataError::new(path, format!("cannot read: {e}")))?.len();
+    let too_big = |n: u64| DataError::new(path, format!("file is {n} bytes, more than the {max_bytes} bytes this reader accepts"));
+    if len > max_bytes {
+        return Err(too_big(len));
+    }
+    let mut out = Vec::with_capacity(len as usize);
+    f.take(max_bytes + 1).read_to_end(&mut out).map_err(|e| DataError::new(path, format!("cannot read: {e}")))?;
+    if out.len() as u64 > max_bytes {
+        return Err(too_big(out.len() as u64));
+    }
+    Ok(out)
+}
+
+/// Read a UTF-8 text file of at most `max_bytes`.
+pub fn read_text_bounded(path: &Path, max_bytes: u64) -> Result<String, DataError> {
+    String::from_utf8(read_bounded(path, max_bytes)?).map_err(|e| DataError::new(path, format!("not UTF-8 text: {e}")))
+}
+
+/// Read and parse a JSON file of at most [`MAX_TEXT_BYTES`] (serde_json bounds nesting depth).
+pub fn read_json_value(path: &Path) -> Result<serde_json::Value, DataError> {
+    let text = read_text_bounded(path, MAX_TEXT_BYTES)?;
+    serde_json::from_str(&text).map_err(|e| DataError::new(path, format!("malformed JSON: {e}")))
+}
+
 /// Seeded, portable RNG used everywhere randomness is needed (initialisation, ray sampling, tests).
 pub fn rng(seed: u64) -> rand::rngs::StdRng {
     use rand::SeedableRng;
@@ -75,5 +130,31 @@ mod tests {
         fs::write(&blocker, b"x").unwrap();
         let err = atomic_write(&blocker.join("out.glb"), b"x").unwrap_err();
         assert!(err.to_string().contains("file"), "{err}");
+    }
+
+    #[test]
+    fn ensure_writable_dir_creates_probes_and_names_the_folder() {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("a").join("b");
+        ensure_writable_dir(&out).unwrap();
+        assert!(out.is_dir());
+        assert_eq!(fs::read_dir(&out).unwrap().count(), 0, "probe left behind");
+        let blocker = dir.path().join("file");
+        fs::write(&blocker, b"x").unwrap();
+        let err = ensure_writable_dir(&blocker).unwrap_err().to_string();
+        assert!(err.contains("file") && err.contains("not a folder"), "{err}");
+        let err = ensure_writable_dir(&blocker.join("sub")).unwrap_err().to_string();
+        assert!(err.contains("file"), "{err}");
+        ensure_writable_parent(&out.join("x.json")).unwrap();
+    }
+
+    #[test]
+    fn bounded_reads_refuse_large_files() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("big.json");
+        fs::write(&p, vec![b' '; 100]).unwrap();
+        let err = read_bounded(&p, 10).unwrap_err().to_string();
+        assert!(err.contains("big.json") && err.contains("100 bytes"), "{err}");
+        assert_eq!(read_bounded(&p, 100).unwrap().len(), 100);
     }
 }

@@ -75,8 +75,7 @@ fn mean(v: &[f64]) -> Option<f64> {
 /// Test frame names from the ground truth's transforms_test.json.
 fn test_names(gt: &Path) -> Result<Vec<String>, DataError> {
     let p = gt.join("transforms_test.json");
-    let text = std::fs::read_to_string(&p).map_err(|e| DataError::new(&p, format!("cannot read: {e}")))?;
-    let v: Value = serde_json::from_str(&text).map_err(|e| DataError::new(&p, format!("malformed JSON: {e}")))?;
+    let v = crate::util::read_json_value(&p)?;
     let frames = v.get("frames").and_then(Value::as_array).ok_or_else(|| DataError::new(&p, "no \"frames\" array"))?;
     frames
         .iter()
@@ -237,6 +236,9 @@ pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
 }
 
 pub fn run(args: &EvalArgs, ctx: &Context) -> anyhow::Result<()> {
+    if let Some(out) = &args.out {
+        crate::util::ensure_writable_parent(out)?;
+    }
     let report = evaluate(args)?;
     if let Some(out) = &args.out {
         let text = serde_json::to_string_pretty(&report)?;

@@ -43,6 +43,10 @@ impl Mesh {
         if m.positions.iter().any(|p| !p.is_finite()) {
             return Err(bad(path, "mesh has non-finite vertex positions"));
         }
+        let area = m.area();
+        if !(area.is_finite() && area > 0.0) {
+            return Err(bad(path, format!("mesh surface area is {area}: no triangle with a finite, non-zero area")));
+        }
         Ok(m)
     }
 
@@ -95,8 +99,11 @@ fn parse_index(path: &Path, line: usize, tok: &str, nverts: usize) -> Result<u32
     Ok(idx as u32)
 }
 
+/// Largest mesh file the readers accept, in bytes.
+pub const MAX_MESH_BYTES: u64 = 4 << 30;
+
 pub fn read_obj(path: &Path) -> Result<Mesh, DataError> {
-    let text = std::fs::read_to_string(path).map_err(|e| bad(path, format!("cannot read: {e}")))?;
+    let text = crate::util::read_text_bounded(path, MAX_MESH_BYTES)?;
     let mut m = Mesh::default();
     for (no, line) in text.lines().enumerate() {
         let mut toks = line.split_whitespace();
@@ -165,7 +172,7 @@ enum Prop {
 }
 
 pub fn read_ply(path: &Path) -> Result<Mesh, DataError> {
-    let data = std::fs::read(path).map_err(|e| bad(path, format!("cannot read: {e}")))?;
+    let data = crate::util::read_bounded(path, MAX_MESH_BYTES)?;
     let end = data.windows(10).position(|w| w == b"end_header").ok_or_else(|| bad(path, "not a PLY file (no end_header)"))?;
     let header = String::from_utf8_lossy(&data[..end]).into_owned();
     let mut body = end + 10;
@@ -205,6 +212,19 @@ pub fn read_ply(path: &Path) -> Result<Mesh, DataError> {
             }
             _ => {}
         }
+    }
+    // Every property of every element takes at least one byte (binary) or two (an ascii value and
+    // a separator): counts the body cannot hold are refused before the loops run.
+    let body_len = (data.len() - body.min(data.len())) as u64;
+    let mut needed: u64 = 0;
+    for (name, count, props) in &elements {
+        if props.is_empty() && *count > 0 {
+            return Err(bad(path, format!("element {name} declares {count} items with no properties")));
+        }
+        needed = needed.saturating_add((*count as u64).saturating_mul(props.len() as u64));
+    }
+    if needed > body_len {
+        return Err(bad(path, format!("header declares {needed} values but the body holds only {body_len} bytes")));
     }
     let mut m = Mesh::default();
     let text;
@@ -324,9 +344,12 @@ pub struct MeshMetrics {
     pub normal_consistency: f64,
 }
 
-/// One direction: mean nearest distance and mean |n·n'| from `a` to `b`.
+/// One direction: mean nearest distance and mean |n·n'| from `a` to `b` (NaN if either is empty).
 fn directed(a: &[DVec3], an: &[DVec3], b: &[DVec3], bn: &[DVec3]) -> (f64, f64) {
     use rayon::prelude::*;
+    if a.is_empty() || b.is_empty() {
+        return (f64::NAN, f64::NAN);
+    }
     let tree = KdTree::new(b);
     let (d, nc) = a
         .par_iter()

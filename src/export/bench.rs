@@ -31,6 +31,9 @@ pub struct BenchExportArgs {
 }
 
 pub fn run(args: &BenchExportArgs, ctx: &Context) -> anyhow::Result<()> {
+    if let Some(out) = &args.out {
+        crate::util::ensure_writable_parent(out)?;
+    }
     let backend = ctx.backend()?;
     let sdf = AnalyticSdf::new(args.shape);
     let material = AnalyticMaterial::Checker;

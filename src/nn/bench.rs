@@ -190,6 +190,7 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
     if args.batches.is_empty() || args.batches.contains(&0) {
         anyhow::bail!("--batches needs positive batch sizes");
     }
+    crate::util::ensure_writable_parent(&args.out)?;
     let mut backends = vec![Backend::cpu()];
     match ctx.backend_choice {
         BackendChoice::Cpu => {}

@@ -20,6 +20,9 @@ use crate::backend::{Backend, BackendError, Tensor};
 use crate::nn::adam::AdamState;
 use crate::util::{atomic_write, DataError};
 
+/// Largest safetensors header (JSON) a checkpoint may declare, in bytes (safetensors' own cap).
+pub const MAX_HEADER_BYTES: u64 = 100_000_000;
+
 /// Prefix of optimiser-state tensors.
 pub const OPTIM_PREFIX: &str = "optim/";
 
@@ -93,8 +96,8 @@ impl ParamStore {
                 "parameter store already has a tensor {name:?}"
             )));
         }
-        let want: usize = shape.iter().product();
-        if data.len() != want {
+        let want = shape.iter().try_fold(1usize, |a, &d| a.checked_mul(d));
+        if want != Some(data.len()) {
             return Err(BackendError::Shape(format!(
                 "tensor {name:?}: {} values for shape {}",
                 data.len(),
@@ -176,6 +179,14 @@ impl ParamStore {
 
     pub fn config_json(&self) -> Option<&str> {
         self.metadata.get("config").map(String::as_str)
+    }
+
+    /// The `config` metadata entry parsed as JSON (None when absent); a malformed entry is a
+    /// [`DataError`] naming `path` (the checkpoint the store was loaded from).
+    pub fn config_value(&self, path: &Path) -> Result<Option<serde_json::Value>, DataError> {
+        self.config_json()
+            .map(|c| serde_json::from_str(c).map_err(|e| DataError::new(path, format!("checkpoint config is not valid JSON: {e}"))))
+            .transpose()
     }
 
     pub fn set_step(&mut self, step: u64) {
@@ -277,10 +288,29 @@ impl ParamStore {
         atomic_write(path, &encoded)
     }
 
-    /// Read a safetensors checkpoint (F32 tensors only).
+    /// Read a safetensors checkpoint (F32 tensors only). The header length the file declares is
+    /// checked against the file's size (and [`MAX_HEADER_BYTES`]) before it is read, and every
+    /// tensor's shape against the bytes it spans, so a damaged file is a [`DataError`] naming
+    /// the file and the size, never an allocation.
     pub fn load(path: &Path) -> Result<Self, DataError> {
         let bytes = std::fs::read(path)
             .map_err(|e| DataError::new(path, format!("cannot read checkpoint: {e}")))?;
+        if bytes.len() < 8 {
+            return Err(DataError::new(
+                path,
+                format!("not a valid safetensors checkpoint: {} bytes, too short for a header", bytes.len()),
+            ));
+        }
+        let declared = u64::from_le_bytes(bytes[..8].try_into().expect("8 bytes"));
+        let room = (bytes.len() - 8) as u64;
+        if declared > room || declared > MAX_HEADER_BYTES {
+            return Err(DataError::new(
+                path,
+                format!(
+                    "not a valid safetensors checkpoint: header declares {declared} bytes but the file holds {room} after the length (at most {MAX_HEADER_BYTES} accepted)"
+                ),
+            ));
+        }
         let corrupt = |e: safetensors::SafeTensorError| {
             DataError::new(
                 path,
@@ -317,6 +347,13 @@ impl ParamStore {
                         "tensor {name:?} has dtype {:?}; pii-bake checkpoints hold F32 tensors",
                         view.dtype()
                     ),
+                ));
+            }
+            let values = view.shape().iter().try_fold(1usize, |a, &d| a.checked_mul(d));
+            if values.and_then(|n| n.checked_mul(4)) != Some(view.data().len()) {
+                return Err(DataError::new(
+                    path,
+                    format!("tensor {name:?}: shape {} does not match its {} bytes", shape_str(view.shape()), view.data().len()),
                 ));
             }
             let data: Vec<f32> = view
@@ -380,5 +417,32 @@ impl ParamStore {
         }
         self.metadata.extend(metadata);
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn declared_header_length_is_checked_against_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("c.safetensors");
+        let mut s = ParamStore::new();
+        s.insert("w", &[2, 3], vec![1.0; 6]).unwrap();
+        s.set_config(&serde_json::json!({"a": 1})).unwrap();
+        s.save(&p).unwrap();
+        let back = ParamStore::load(&p).unwrap();
+        assert_eq!(back.config_value(&p).unwrap(), Some(serde_json::json!({"a": 1})));
+        let mut b = std::fs::read(&p).unwrap();
+        b[..8].copy_from_slice(&(1u64 << 40).to_le_bytes());
+        std::fs::write(&p, &b).unwrap();
+        let e = ParamStore::load(&p).unwrap_err().to_string();
+        assert!(e.contains("c.safetensors") && e.contains(&(1u64 << 40).to_string()), "{e}");
+        std::fs::write(&p, &b[..5]).unwrap();
+        let e = ParamStore::load(&p).unwrap_err().to_string();
+        assert!(e.contains("c.safetensors") && e.contains("too short"), "{e}");
+        // overflowing shapes are refused, not multiplied
+        assert!(ParamStore::new().insert("x", &[usize::MAX, 2, 0], vec![]).is_err());
     }
 }

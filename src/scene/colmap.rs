@@ -12,8 +12,11 @@ use std::path::{Path, PathBuf};
 use glam::{DMat3, DQuat, DVec3};
 
 use super::normalise::BoundHint;
-use super::{world_from_camera, Camera, Distortion, RawView, Split};
-use crate::util::DataError;
+use super::{declared_side, world_from_camera, Camera, Distortion, RawView, Split};
+use crate::util::{read_text_bounded, DataError};
+
+/// Largest COLMAP text file accepted (images.txt holds every 2-D point of every image).
+const MAX_COLMAP_TEXT_BYTES: u64 = 2 << 30;
 
 fn bad(path: &Path, what: impl Into<String>) -> DataError {
     DataError::new(path, what.into())
@@ -83,18 +86,37 @@ impl<'a> Cursor<'a> {
     fn f64(&mut self) -> Result<f64, DataError> {
         Ok(f64::from_le_bytes(self.take(8)?.try_into().expect("8 bytes")))
     }
+    /// A record count: each record needs at least `min_record` bytes, so a count the rest of the
+    /// file cannot hold is an error (naming the count), not a loop or an allocation.
+    fn count(&mut self, what: &str, min_record: usize) -> Result<usize, DataError> {
+        let n = self.u64()?;
+        let left = (self.data.len() - self.pos) as u64;
+        if n > left / min_record as u64 {
+            return Err(bad(
+                self.path,
+                format!("declares {n} {what} but the {left} bytes that follow hold at most {}", left / min_record as u64),
+            ));
+        }
+        Ok(n as usize)
+    }
 }
 
 fn read_cameras_bin(path: &Path) -> Result<HashMap<u32, ColmapCamera>, DataError> {
     let data = std::fs::read(path).map_err(|e| bad(path, format!("cannot read: {e}")))?;
     let mut c = Cursor { path, data: &data, pos: 0 };
-    let n = c.u64()?;
+    // id, model, width, height, at least 3 parameters
+    let n = c.count("cameras", 4 + 4 + 8 + 8 + 3 * 8)?;
     let mut out = HashMap::new();
     for _ in 0..n {
         let id = c.i32()? as u32;
         let model_id = c.i32()?;
         let (model, np) = model_name(model_id).ok_or_else(|| bad(path, format!("unknown camera model id {model_id}")))?;
-        let (width, height) = (c.u64()? as usize, c.u64()? as usize);
+        let (w, h) = (c.u64()?, c.u64()?);
+        let max = crate::image_io::MAX_IMAGE_SIDE as u64;
+        if w == 0 || h == 0 || w > max || h > max {
+            return Err(bad(path, format!("camera {id} declares an image size {w}x{h} out of range (1..={max})")));
+        }
+        let (width, height) = (w as usize, h as usize);
         let params = (0..np).map(|_| c.f64()).collect::<Result<Vec<_>, _>>()?;
         out.insert(id, ColmapCamera { model: model.into(), width, height, params });
     }
@@ -104,7 +126,8 @@ fn read_cameras_bin(path: &Path) -> Result<HashMap<u32, ColmapCamera>, DataError
 fn read_images_bin(path: &Path) -> Result<Vec<ColmapImage>, DataError> {
     let data = std::fs::read(path).map_err(|e| bad(path, format!("cannot read: {e}")))?;
     let mut c = Cursor { path, data: &data, pos: 0 };
-    let n = c.u64()?;
+    // id, quaternion, translation, camera id, name terminator, point count
+    let n = c.count("images", 4 + 32 + 24 + 4 + 1 + 8)?;
     let mut out = Vec::new();
     for _ in 0..n {
         let _id = c.i32()?;
@@ -119,8 +142,8 @@ fn read_images_bin(path: &Path) -> Result<Vec<ColmapImage>, DataError> {
             }
             name.push(b);
         }
-        let np = c.u64()? as usize;
-        c.take(np.checked_mul(24).ok_or_else(|| bad(path, "bad point count"))?)?;
+        let np = c.count("2-D points", 24)?;
+        c.take(np * 24)?;
         out.push(ColmapImage { q, t, camera_id, name: String::from_utf8_lossy(&name).into_owned() });
     }
     Ok(out)
@@ -133,7 +156,7 @@ fn parse_nums(path: &Path, line_no: usize, toks: &[&str]) -> Result<Vec<f64>, Da
 }
 
 fn read_cameras_txt(path: &Path) -> Result<HashMap<u32, ColmapCamera>, DataError> {
-    let text = std::fs::read_to_string(path).map_err(|e| bad(path, format!("cannot read: {e}")))?;
+    let text = read_text_bounded(path, MAX_COLMAP_TEXT_BYTES)?;
     let mut out = HashMap::new();
     for (i, line) in text.lines().enumerate() {
         let line = line.trim();
@@ -146,14 +169,16 @@ fn read_cameras_txt(path: &Path) -> Result<HashMap<u32, ColmapCamera>, DataError
         }
         let id = toks[0].parse::<u32>().map_err(|_| bad(path, format!("line {}: bad camera id", i + 1)))?;
         let wh = parse_nums(path, i + 1, &toks[2..4])?;
+        let (width, height) =
+            (declared_side(path, &format!("line {}: width", i + 1), wh[0])?, declared_side(path, &format!("line {}: height", i + 1), wh[1])?);
         let params = parse_nums(path, i + 1, &toks[4..])?;
-        out.insert(id, ColmapCamera { model: toks[1].to_string(), width: wh[0] as usize, height: wh[1] as usize, params });
+        out.insert(id, ColmapCamera { model: toks[1].to_string(), width, height, params });
     }
     Ok(out)
 }
 
 fn read_images_txt(path: &Path) -> Result<Vec<ColmapImage>, DataError> {
-    let text = std::fs::read_to_string(path).map_err(|e| bad(path, format!("cannot read: {e}")))?;
+    let text = read_text_bounded(path, MAX_COLMAP_TEXT_BYTES)?;
     // Two lines per image; the second (2D points) may be empty, so only comment lines are skipped.
     let lines: Vec<(usize, &str)> = text.lines().enumerate().filter(|(_, l)| !l.trim_start().starts_with('#')).collect();
     let mut out = Vec::new();
@@ -188,6 +213,9 @@ fn intrinsics(path: &Path, c: &ColmapCamera) -> Result<(f64, f64, f64, f64, Opti
     if p.len() != need {
         return Err(bad(path, format!("camera model {} needs {need} parameters, got {}", c.model, p.len())));
     }
+    if p.iter().any(|v| !v.is_finite()) {
+        return Err(bad(path, format!("camera model {}: parameters {p:?} are not all finite", c.model)));
+    }
     let d = |k1, k2, p1, p2| Some(Distortion { k1, k2, k3: 0.0, p1, p2 });
     Ok(match c.model.as_str() {
         "SIMPLE_PINHOLE" => (p[0], p[0], p[1], p[2], None),
@@ -212,6 +240,12 @@ pub(crate) fn read(path: &Path) -> Result<(Vec<RawView>, BoundHint), DataError> 
         .into_iter()
         .find(|d| d.join("images").is_dir())
         .ok_or_else(|| bad(path, "no images/ folder next to the COLMAP model"))?;
+    if imgs.is_empty() {
+        return Err(bad(&img_file, "the model lists no images"));
+    }
+    if cams.is_empty() {
+        return Err(bad(&cam_file, "the model lists no cameras"));
+    }
     let mask_dir = root.join("masks");
     let mut imgs = imgs;
     imgs.sort_by(|a, b| a.name.cmp(&b.name));
@@ -224,6 +258,9 @@ pub(crate) fn read(path: &Path) -> Result<(Vec<RawView>, BoundHint), DataError> 
         let qn = (im.q.iter().map(|x| x * x).sum::<f64>()).sqrt();
         if !(qn.is_finite() && (qn - 1.0).abs() < 1e-3) {
             return Err(bad(&img_file, format!("image {}: quaternion norm {qn:.4} is not a rotation", im.name)));
+        }
+        if im.t.iter().any(|v| !v.is_finite()) {
+            return Err(bad(&img_file, format!("image {}: translation {:?} is not finite", im.name, im.t)));
         }
         let q = DQuat::from_xyzw(im.q[1], im.q[2], im.q[3], im.q[0]).normalize();
         let r_cw = DMat3::from_quat(q);
@@ -250,7 +287,7 @@ pub(crate) fn read(path: &Path) -> Result<(Vec<RawView>, BoundHint), DataError> 
         } else {
             None
         };
-        views.push(RawView { name: stem, split: Split::Train, camera, image_path, mask_path, alpha_mask: false });
+        views.push(RawView { name: stem, split: Split::Train, camera, image_path, mask_path, alpha_mask: false, sources: vec![cam_file.clone(), img_file.clone()] });
     }
     Ok((views, BoundHint::default()))
 }

@@ -7,7 +7,6 @@
 //! integer pixel coordinates are pixel centres, so cx, cy get +0.5 (module docs of `scene`).
 //! Images and masks pair with the cameras by sorted file order.
 
-use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use glam::{DMat3, DMat4, DVec3};
@@ -20,28 +19,93 @@ fn bad(path: &Path, what: impl Into<String>) -> DataError {
     DataError::new(path, what.into())
 }
 
-/// An npy array as f64 values with its shape.
-pub(crate) fn npy_f64<R: Read>(path: &Path, name: &str, f: npyz::NpyFile<R>) -> Result<(Vec<u64>, Vec<f64>), DataError> {
+/// Largest npy array (in bytes, header included) the scene readers accept: a camera matrix is
+/// ~200 bytes, `poses_bounds.npy` 136 bytes per view.
+pub(crate) const MAX_NPY_BYTES: u64 = 64 << 20;
+
+/// An npy array held in memory (`bytes`) as f64 values with its shape. The header's declared
+/// length, and the shape × item size it declares, are checked against the bytes that are there
+/// before anything is allocated; at most `max_values` values are accepted.
+pub(crate) fn npy_f64(path: &Path, name: &str, bytes: &[u8], max_values: u64) -> Result<(Vec<u64>, Vec<f64>), DataError> {
+    // Pre-header: magic, version, header length (u16 in v1, u32 in v2/v3).
+    if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
+        return Err(bad(path, format!("{name}: not an npy array (no \\x93NUMPY magic)")));
+    }
+    let (pre, header_len) = match bytes[6] {
+        1 => (10usize, u16::from_le_bytes([bytes[8], bytes[9]]) as usize),
+        2 | 3 if bytes.len() >= 12 => (12usize, u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize),
+        v => return Err(bad(path, format!("{name}: unsupported npy version {v}"))),
+    };
+    let data_start = pre.checked_add(header_len).filter(|&e| e <= bytes.len()).ok_or_else(|| {
+        bad(path, format!("{name}: npy header declares {header_len} bytes but the array holds only {}", bytes.len() - pre))
+    })?;
+    let f = npyz::NpyFile::new(bytes).map_err(|e| bad(path, format!("{name}: malformed npy: {e}")))?;
     let shape = f.shape().to_vec();
-    let ts = match f.dtype() {
-        npyz::DType::Plain(ts) => ts.to_string(),
+    let item = match f.dtype() {
+        npyz::DType::Plain(ts) => {
+            let ts = ts.to_string();
+            if ts.ends_with("f8") {
+                8u64
+            } else if ts.ends_with("f4") {
+                4
+            } else {
+                return Err(bad(path, format!("{name}: dtype {ts} is not float32/float64")));
+            }
+        }
         _ => return Err(bad(path, format!("{name}: not a plain float array"))),
     };
-    let vals = if ts.ends_with("f8") {
+    let values = shape.iter().try_fold(1u64, |a, &d| a.checked_mul(d));
+    let avail = (bytes.len() - data_start) as u64;
+    match values {
+        Some(n) if n <= max_values && n.checked_mul(item).is_some_and(|b| b <= avail) => {}
+        _ => {
+            return Err(bad(
+                path,
+                format!(
+                    "{name}: shape {shape:?} declares {} values of {item} bytes but the array holds {avail} bytes of data (at most {max_values} values accepted)",
+                    values.map_or("more than 2^64".to_string(), |n| n.to_string())
+                ),
+            ))
+        }
+    }
+    let vals = if item == 8 {
         f.into_vec::<f64>().map_err(|e| bad(path, format!("{name}: {e}")))?
-    } else if ts.ends_with("f4") {
-        f.into_vec::<f32>().map_err(|e| bad(path, format!("{name}: {e}")))?.into_iter().map(f64::from).collect()
     } else {
-        return Err(bad(path, format!("{name}: dtype {ts} is not float32/float64")));
+        f.into_vec::<f32>().map_err(|e| bad(path, format!("{name}: {e}")))?.into_iter().map(f64::from).collect()
     };
+    if vals.len() as u64 != values.unwrap_or(0) {
+        return Err(bad(path, format!("{name}: read {} values for shape {shape:?}", vals.len())));
+    }
     Ok((shape, vals))
 }
 
-fn mat4(path: &Path, npz: &mut npyz::npz::NpzArchive<std::io::BufReader<std::fs::File>>, name: &str) -> Result<Option<DMat4>, DataError> {
-    let Some(f) = npz.by_name(name).map_err(|e| bad(path, format!("malformed npz ({name}): {e}")))? else {
+type Npz = npyz::npz::NpzArchive<std::io::BufReader<std::fs::File>>;
+
+/// The bytes of array `name` of an npz (its zip entry read with a cap, whatever size the entry
+/// declares), or None if there is no such array.
+fn npz_entry(path: &Path, npz: &mut Npz, name: &str) -> Result<Option<Vec<u8>>, DataError> {
+    use std::io::Read;
+    let zip = npz.zip_archive();
+    let Some(entry) = zip.file_names().find(|f| npyz::npz::array_name_from_file_name(f) == Some(name)).map(str::to_owned) else {
         return Ok(None);
     };
-    let (shape, v) = npy_f64(path, name, f)?;
+    let f = zip.by_name(&entry).map_err(|e| bad(path, format!("malformed npz ({name}): {e}")))?;
+    if f.size() > MAX_NPY_BYTES {
+        return Err(bad(path, format!("{name}: npz entry declares {} bytes, more than the {MAX_NPY_BYTES} accepted", f.size())));
+    }
+    let mut buf = Vec::new();
+    f.take(MAX_NPY_BYTES + 1).read_to_end(&mut buf).map_err(|e| bad(path, format!("malformed npz ({name}): {e}")))?;
+    if buf.len() as u64 > MAX_NPY_BYTES {
+        return Err(bad(path, format!("{name}: npz entry holds more than the {MAX_NPY_BYTES} bytes accepted")));
+    }
+    Ok(Some(buf))
+}
+
+fn mat4(path: &Path, npz: &mut Npz, name: &str) -> Result<Option<DMat4>, DataError> {
+    let Some(bytes) = npz_entry(path, npz, name)? else {
+        return Ok(None);
+    };
+    let (shape, v) = npy_f64(path, name, &bytes, 16)?;
     if shape != [4, 4] && shape != [3, 4] {
         return Err(bad(path, format!("{name} has shape {shape:?}, expected 4x4")));
     }
@@ -144,7 +208,7 @@ pub(crate) fn read(path: &Path) -> Result<(Vec<RawView>, BoundHint), DataError> 
         if i == 0 {
             let sm = mat4(&npz_path, &mut npz, "scale_mat_0")?.unwrap_or(DMat4::IDENTITY);
             let (sx, sy, sz) = (sm.x_axis.x, sm.y_axis.y, sm.z_axis.z);
-            if !(sx > 0.0 && (sx - sy).abs() <= 1e-6 * sx && (sx - sz).abs() <= 1e-6 * sx) {
+            if !(sx > 0.0 && (1.0 / sx).is_finite() && (sx - sy).abs() <= 1e-6 * sx && (sx - sz).abs() <= 1e-6 * sx) {
                 return Err(bad(&npz_path, format!("scale_mat_0 is not a uniform positive scale ({sx}, {sy}, {sz})")));
             }
             hint = BoundHint {
@@ -166,7 +230,7 @@ pub(crate) fn read(path: &Path) -> Result<(Vec<RawView>, BoundHint), DataError> 
         let camera = Camera { width: w, height: h, fx, fy, cx: cx + 0.5, cy: cy + 0.5, distortion: None, world_from_camera: w2c };
         let name = image_path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default();
         let mask_path = masks.as_ref().map(|m| m[i].clone());
-        views.push(RawView { name, split: Split::Train, camera, image_path, mask_path, alpha_mask: false });
+        views.push(RawView { name, split: Split::Train, camera, image_path, mask_path, alpha_mask: false, sources: vec![npz_path.clone()] });
     }
     Ok((views, hint))
 }

@@ -27,10 +27,9 @@ pub(crate) fn read(path: &Path) -> Result<(Vec<RawView>, BoundHint), DataError> 
     } else {
         (path.to_path_buf(), path.join("poses_bounds.npy"))
     };
-    let bytes = std::fs::read(&npy).map_err(|e| bad(&npy, format!("cannot read: {e}")))?;
-    let f = npyz::NpyFile::new(&bytes[..]).map_err(|e| bad(&npy, format!("malformed npy: {e}")))?;
-    let (shape, v) = super::idr::npy_f64(&npy, "poses_bounds", f)?;
-    if shape.len() != 2 || shape[1] != 17 {
+    let bytes = crate::util::read_bounded(&npy, super::idr::MAX_NPY_BYTES)?;
+    let (shape, v) = super::idr::npy_f64(&npy, "poses_bounds", &bytes, super::idr::MAX_NPY_BYTES / 8)?;
+    if shape.len() != 2 || shape[1] != 17 || shape[0] == 0 {
         return Err(bad(&npy, format!("shape {shape:?}, expected N x 17")));
     }
     let n = shape[0] as usize;
@@ -64,6 +63,9 @@ pub(crate) fn read(path: &Path) -> Result<(Vec<RawView>, BoundHint), DataError> 
             ));
         }
         let f = focal * ratio;
+        if !(f.is_finite() && f > 0.0) {
+            return Err(bad(&npy, format!("pose {i}: focal {focal} for a {w0}x{h0} image gives focal {f} at {w}x{h}")));
+        }
         let camera = Camera {
             width: w,
             height: h,
@@ -85,7 +87,7 @@ pub(crate) fn read(path: &Path) -> Result<(Vec<RawView>, BoundHint), DataError> 
             None => None,
         };
         let split = if i % LLFF_HOLD == 0 { Split::Test } else { Split::Train };
-        views.push(RawView { name: stem, split, camera, image_path, mask_path, alpha_mask: false });
+        views.push(RawView { name: stem, split, camera, image_path, mask_path, alpha_mask: false, sources: vec![npy.clone()] });
     }
     Ok((views, BoundHint::default()))
 }

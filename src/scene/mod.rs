@@ -268,6 +268,14 @@ pub(crate) struct RawView {
     pub mask_path: Option<PathBuf>,
     /// Use the image's alpha channel as the mask (when there is no mask file).
     pub alpha_mask: bool,
+    /// The files the camera came from (named in errors about the camera), main one first.
+    pub sources: Vec<PathBuf>,
+}
+
+impl RawView {
+    fn sources_text(&self) -> String {
+        self.sources.iter().map(|p| p.display().to_string()).collect::<Vec<_>>().join(" and ")
+    }
 }
 
 /// Detect the format of `path` (a folder or a transforms/npz file).
@@ -320,8 +328,14 @@ pub fn load(path: &Path, opts: &ReadOptions) -> Result<Scene, DataError> {
     if raw.is_empty() {
         return Err(DataError::new(path, "the scene has no views"));
     }
+    // Named when the scene cannot be normalised: the problem lies between these files.
+    let mut files: Vec<String> = raw.iter().map(RawView::sources_text).collect();
+    files.extend(raw.iter().filter_map(|r| r.mask_path.as_ref()?.parent().map(|d| format!("masks in {}", d.display()))));
+    files.sort();
+    files.dedup();
     let views = load_views(raw, opts.downscale)?;
-    let normalisation = normalise::compute(path, &views, &hint)?;
+    let normalisation = normalise::compute(path, &views, &hint)
+        .map_err(|e| DataError::new(e.path, format!("{} (cameras from {})", e.problem, files.join(", "))))?;
     let views = views
         .into_iter()
         .map(|mut v| {
@@ -338,13 +352,19 @@ fn load_views(raw: Vec<RawView>, n: usize) -> Result<Vec<View>, DataError> {
 }
 
 fn load_view(r: RawView, n: usize) -> Result<View, DataError> {
+    let source = r.sources.first().cloned().unwrap_or_default();
+    check_camera(&source, &format!("{} (camera from {})", r.name, r.sources_text()), &r.camera)?;
     let img = read_image_linear(&r.image_path)?;
     if img.width != r.camera.width || img.height != r.camera.height {
         return Err(DataError::new(
             &r.image_path,
             format!(
-                "image is {}x{} but its camera says {}x{}",
-                img.width, img.height, r.camera.width, r.camera.height
+                "image is {}x{} but its camera in {} says {}x{}",
+                img.width,
+                img.height,
+                r.sources_text(),
+                r.camera.width,
+                r.camera.height
             ),
         ));
     }
@@ -462,19 +482,44 @@ pub(crate) fn list_images(dir: &Path) -> Result<Vec<PathBuf>, DataError> {
     Ok(out)
 }
 
-/// Image size without decoding the pixels.
+/// Image size without decoding the pixels (from the header, checked against the image limits).
 pub(crate) fn image_size(path: &Path) -> Result<(usize, usize), DataError> {
-    if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr")) {
-        let img = read_image_linear(path)?;
-        return Ok((img.width, img.height));
+    crate::image_io::image_dimensions(path)
+}
+
+/// Check camera values a file declares: a size within the image limits, finite positive focal
+/// lengths, a finite principal point and finite distortion. The error names `source` (the file
+/// the camera came from).
+pub(crate) fn check_camera(source: &Path, what: &str, c: &Camera) -> Result<(), DataError> {
+    let max = crate::image_io::MAX_IMAGE_SIDE;
+    if c.width == 0 || c.height == 0 || c.width > max || c.height > max {
+        return Err(DataError::new(source, format!("{what}: image size {}x{} is out of range (1..={max})", c.width, c.height)));
     }
-    let (w, h) = image::ImageReader::open(path)
-        .map_err(|e| DataError::new(path, format!("cannot open: {e}")))?
-        .with_guessed_format()
-        .map_err(|e| DataError::new(path, format!("cannot read: {e}")))?
-        .into_dimensions()
-        .map_err(|e| DataError::new(path, format!("not a readable image: {e}")))?;
-    Ok((w as usize, h as usize))
+    if !(c.fx.is_finite() && c.fy.is_finite() && c.fx > 0.0 && c.fy > 0.0) {
+        return Err(DataError::new(source, format!("{what}: focal lengths ({}, {}) must be finite and positive", c.fx, c.fy)));
+    }
+    if !(c.cx.is_finite() && c.cy.is_finite()) {
+        return Err(DataError::new(source, format!("{what}: principal point ({}, {}) is not finite", c.cx, c.cy)));
+    }
+    if let Some(d) = &c.distortion {
+        if [d.k1, d.k2, d.k3, d.p1, d.p2].iter().any(|v| !v.is_finite()) {
+            return Err(DataError::new(source, format!("{what}: distortion coefficients are not finite")));
+        }
+    }
+    if !c.world_from_camera.is_finite() {
+        return Err(DataError::new(source, format!("{what}: camera pose is not finite")));
+    }
+    Ok(())
+}
+
+/// A size a file declares as a float (JSON, COLMAP text) as an image side: a positive integer
+/// within the image limits.
+pub(crate) fn declared_side(source: &Path, what: &str, v: f64) -> Result<usize, DataError> {
+    let max = crate::image_io::MAX_IMAGE_SIDE;
+    if !(v.is_finite() && v >= 1.0 && v <= max as f64 && v.fract() == 0.0) {
+        return Err(DataError::new(source, format!("{what}: image size {v} is not an integer in 1..={max}")));
+    }
+    Ok(v as usize)
 }
 
 /// Build a world_from_camera (OpenCV axes) from a camera→world rotation and centre.

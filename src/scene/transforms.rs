@@ -18,8 +18,8 @@ use glam::{DMat3, DVec3};
 use serde_json::Value;
 
 use super::normalise::BoundHint;
-use super::{check_rotation, image_size, resolve_image, world_from_camera, Camera, Distortion, RawView, Split};
-use crate::util::DataError;
+use super::{check_rotation, declared_side, image_size, resolve_image, world_from_camera, Camera, Distortion, RawView, Split};
+use crate::util::{read_json_value, DataError};
 
 /// The transforms files of a folder (or the file itself), with their split.
 pub(crate) fn find_files(path: &Path) -> Result<Vec<(PathBuf, Option<Split>)>, DataError> {
@@ -82,8 +82,7 @@ pub(crate) fn read(path: &Path) -> Result<(Vec<RawView>, BoundHint), DataError> 
 }
 
 fn read_file(file: &Path, split: Option<Split>, views: &mut Vec<RawView>) -> Result<(), DataError> {
-    let text = std::fs::read_to_string(file).map_err(|e| bad(file, format!("cannot read: {e}")))?;
-    let top: Value = serde_json::from_str(&text).map_err(|e| bad(file, format!("malformed JSON: {e}")))?;
+    let top = read_json_value(file)?;
     let dir = file.parent().unwrap_or(Path::new("."));
     let frames = top.get("frames").and_then(Value::as_array).ok_or_else(|| bad(file, "no \"frames\" array"))?;
     if frames.is_empty() {
@@ -112,7 +111,7 @@ fn read_file(file: &Path, split: Option<Split>, views: &mut Vec<RawView>) -> Res
             return Err(bad(file, format!("{what}: distortion k4 (fisheye) is not supported")));
         }
         let (w, h) = match (field(frame, &top, "w"), field(frame, &top, "h")) {
-            (Some(w), Some(h)) => (w as usize, h as usize),
+            (Some(w), Some(h)) => (declared_side(file, &format!("{what}: w"), w)?, declared_side(file, &format!("{what}: h"), h)?),
             _ => image_size(&image_path)?,
         };
         let (fx, fy, cx, cy) = if let Some(fx) = field(frame, &top, "fl_x") {
@@ -123,13 +122,22 @@ fn read_file(file: &Path, split: Option<Split>, views: &mut Vec<RawView>) -> Res
                 return Err(bad(file, format!("camera_angle_x = {ax} is not a field of view in radians")));
             }
             let fx = 0.5 * w as f64 / (0.5 * ax).tan();
-            let fy = field(frame, &top, "camera_angle_y").map(|ay| 0.5 * h as f64 / (0.5 * ay).tan()).unwrap_or(fx);
+            let fy = match field(frame, &top, "camera_angle_y") {
+                Some(ay) if !(ay > 0.0 && ay < std::f64::consts::PI) => {
+                    return Err(bad(file, format!("camera_angle_y = {ay} is not a field of view in radians")));
+                }
+                Some(ay) => 0.5 * h as f64 / (0.5 * ay).tan(),
+                None => fx,
+            };
             (fx, fy, w as f64 / 2.0, h as f64 / 2.0)
         } else {
             return Err(bad(file, format!("{what}: no intrinsics (camera_angle_x or fl_x)")));
         };
         if !(fx > 0.0 && fy > 0.0 && fx.is_finite() && fy.is_finite()) {
             return Err(bad(file, format!("{what}: focal length must be positive")));
+        }
+        if !(cx.is_finite() && cy.is_finite()) {
+            return Err(bad(file, format!("{what}: principal point ({cx}, {cy}) is not finite")));
         }
         let d = Distortion {
             k1: field(frame, &top, "k1").unwrap_or(0.0),
@@ -138,6 +146,9 @@ fn read_file(file: &Path, split: Option<Split>, views: &mut Vec<RawView>) -> Res
             p1: field(frame, &top, "p1").unwrap_or(0.0),
             p2: field(frame, &top, "p2").unwrap_or(0.0),
         };
+        if [d.k1, d.k2, d.k3, d.p1, d.p2].iter().any(|v| !v.is_finite()) {
+            return Err(bad(file, format!("{what}: distortion coefficients are not finite")));
+        }
         let m = parse_matrix(file, &what, frame.get("transform_matrix"))?;
         // OpenGL camera axes (x right, y up, z back) -> OpenCV (x right, y down, z forward).
         let r_gl = DMat3::from_cols(m[0], m[1], m[2]);
@@ -169,7 +180,7 @@ fn read_file(file: &Path, split: Option<Split>, views: &mut Vec<RawView>) -> Res
             None => None,
         };
         let name = Path::new(fp).file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| format!("{i}"));
-        views.push(RawView { name, split, camera, image_path, mask_path, alpha_mask: true });
+        views.push(RawView { name, split, camera, image_path, mask_path, alpha_mask: true, sources: vec![file.to_path_buf()] });
     }
     Ok(())
 }
@@ -197,16 +208,15 @@ fn generated_scene_bound(dir: &Path) -> Result<BoundHint, DataError> {
     if !p.is_file() {
         return Ok(BoundHint::default());
     }
-    let text = std::fs::read_to_string(&p).map_err(|e| bad(&p, format!("cannot read: {e}")))?;
-    let v: Value = serde_json::from_str(&text).map_err(|e| bad(&p, format!("malformed JSON: {e}")))?;
+    let v = read_json_value(&p)?;
     let Some(b) = v.get("bound") else { return Ok(BoundHint::default()) };
     let c = b.get("center").and_then(Value::as_array).filter(|a| a.len() == 3);
     let r = b.get("radius").and_then(Value::as_f64);
     match (c, r) {
-        (Some(c), Some(r)) if r > 0.0 => {
-            let c: Vec<f64> = c.iter().filter_map(Value::as_f64).collect();
+        (Some(c), Some(r)) if r > 0.0 && r.is_finite() && (1.0 / r).is_finite() => {
+            let c: Vec<f64> = c.iter().filter_map(Value::as_f64).filter(|x| x.is_finite()).collect();
             if c.len() != 3 {
-                return Err(bad(&p, "bound.center must be 3 numbers"));
+                return Err(bad(&p, "bound.center must be 3 finite numbers"));
             }
             Ok(BoundHint {
                 sphere: Some((DVec3::new(c[0], c[1], c[2]), r)),

@@ -96,6 +96,7 @@ pub fn run(args: &BenchEnvArgs, ctx: &Context) -> anyhow::Result<()> {
     let base = FitConfig { lobes: 0, iterations: args.iterations, fit_width: args.fit_width, energy_weight: args.energy_weight, ..FitConfig::default() };
     let tolerance = AutoTolerance { log_l2: args.tolerance, irradiance: args.irradiance_tolerance };
     crate::sg::cli::check_fit_flags(&tolerance, &base)?;
+    crate::util::ensure_writable_dir(&args.out)?;
     let backend = ctx.backend()?;
     let pb = ctx.progress((files.len() * args.lobes.len()) as u64, "bench env");
     let mut rows = Vec::new();

@@ -78,6 +78,7 @@ pub fn run(args: &FitEnvArgs, ctx: &Context) -> anyhow::Result<()> {
     let tolerance = AutoTolerance { log_l2: args.tolerance, irradiance: args.irradiance_tolerance };
     let base = FitConfig { lobes: 0, iterations: args.iterations, lr: args.lr, seed: args.seed, fit_width: args.fit_width, energy_weight: args.energy_weight };
     check_fit_flags(&tolerance, &base)?;
+    crate::util::ensure_writable_dir(&args.out)?;
     let map = read_latlong_exr(&args.map)?;
     if map.clamped_negatives > 0 {
         tracing::warn!("{}: clamped {} negative values (min {}) to 0", args.map.display(), map.clamped_negatives, map.min_value);
@@ -160,9 +161,18 @@ fn write_outputs(
     let exr = out.join("env_fit.exr");
     let png = out.join("env_compare.png");
     let report = out.join("fit_report.json");
-    chosen.env.write_json(&sg_json)?;
-    write_latlong_exr(&chosen.env, &exr, width, args.convention)?;
-    write_comparison_png(&png, rgb, width, height, chosen, args.convention)?;
+    // All or nothing: if one output cannot be written, the ones this run wrote are removed.
+    let written = (|| -> anyhow::Result<()> {
+        chosen.env.write_json(&sg_json)?;
+        write_latlong_exr(&chosen.env, &exr, width, args.convention)?;
+        write_comparison_png(&png, rgb, width, height, chosen, args.convention)
+    })();
+    if let Err(e) = written {
+        for p in [&sg_json, &exr, &png] {
+            let _ = std::fs::remove_file(p);
+        }
+        return Err(e);
+    }
     let auto_ok = rungs.iter().any(|r| r.within_tolerance);
     let doc = serde_json::json!({
         "map": args.map.display().to_string(),

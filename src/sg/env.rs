@@ -54,16 +54,46 @@ impl EnvSgs {
         atomic_write(path, text.as_bytes())
     }
 
+    /// Read SG parameters written by [`EnvSgs::write_json`]. The file's size (at most
+    /// [`MAX_ENV_JSON_BYTES`]) and lobe count (at most [`MAX_ENV_LOBES`]) are bounded; every lobe
+    /// needs a finite non-zero axis (normalised on reading when it is not unit length), a finite sharpness > 0 and a finite
+    /// amplitude, else a [`DataError`] naming the file and the lobe.
     pub fn read_json(path: &Path) -> Result<Self, DataError> {
         #[derive(Deserialize)]
         struct Doc {
             lobes: Vec<SgLobe>,
         }
-        let text = std::fs::read_to_string(path).map_err(|e| DataError::new(path, format!("cannot read: {e}")))?;
+        let text = crate::util::read_text_bounded(path, MAX_ENV_JSON_BYTES)?;
         let doc: Doc = serde_json::from_str(&text).map_err(|e| DataError::new(path, format!("not an SG environment JSON: {e}")))?;
-        Ok(Self { lobes: doc.lobes })
+        if doc.lobes.len() > MAX_ENV_LOBES {
+            return Err(DataError::new(path, format!("{} lobes, more than the {MAX_ENV_LOBES} accepted", doc.lobes.len())));
+        }
+        let mut lobes = doc.lobes;
+        for (i, l) in lobes.iter_mut().enumerate() {
+            let n = l.axis.iter().map(|v| (*v as f64) * (*v as f64)).sum::<f64>().sqrt();
+            if !(n.is_finite() && n > 1e-12) {
+                return Err(DataError::new(path, format!("lobe {i}: axis {:?} is not a finite non-zero direction", l.axis)));
+            }
+            if (n - 1.0).abs() > 1e-5 {
+                for a in &mut l.axis {
+                    *a = (*a as f64 / n) as f32;
+                }
+            }
+            if !(l.sharpness.is_finite() && l.sharpness > 0.0) {
+                return Err(DataError::new(path, format!("lobe {i}: sharpness {} must be finite and > 0", l.sharpness)));
+            }
+            if l.amplitude.iter().any(|v| !v.is_finite()) {
+                return Err(DataError::new(path, format!("lobe {i}: amplitude {:?} is not finite", l.amplitude)));
+            }
+        }
+        Ok(Self { lobes })
     }
 }
+
+/// Largest SG environment JSON [`EnvSgs::read_json`] accepts, in bytes.
+pub const MAX_ENV_JSON_BYTES: u64 = 16 << 20;
+/// Most lobes [`EnvSgs::read_json`] accepts.
+pub const MAX_ENV_LOBES: usize = 4096;
 
 /// Which latlong layout a map uses (see the module docs).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
