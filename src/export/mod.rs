@@ -215,13 +215,7 @@ fn valid_name(name: &str) -> bool {
 
 /// Fail early (before any heavy work) when `out_dir` cannot be created or written.
 pub fn check_writable(out_dir: &Path) -> Result<(), DataError> {
-    std::fs::create_dir_all(out_dir)
-        .map_err(|e| DataError::new(out_dir, format!("cannot create output folder: {e}")))?;
-    let probe = out_dir.join(format!(".pii-bake-probe-{}", std::process::id()));
-    std::fs::write(&probe, b"")
-        .map_err(|e| DataError::new(out_dir, format!("output folder is not writable: {e}")))?;
-    let _ = std::fs::remove_file(&probe);
-    Ok(())
+    crate::util::ensure_writable_dir(out_dir)
 }
 
 /// The export entry point: mesh, unwrap, bake and write the asset folder (see the module docs).

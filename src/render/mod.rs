@@ -10,8 +10,9 @@
 //! 2. sphere tracing from the near intersection, `sphere_steps` steps, a ray converges when
 //!    |f| < threshold; a ray that steps past the far intersection misses; a ray that lands
 //!    inside (f < 0) or runs out of steps is *unfinished*;
-//! 3. unfinished rays: `sampler_samples` uniform samples between where tracing stopped (less
-//!    one step back when it overshot) and the far intersection; the first sign change (+ → −)
+//! 3. unfinished rays: `sampler_samples` uniform samples between the last point known outside
+//!    (when tracing overshot) or the near intersection (when it ran out of steps) and the far
+//!    intersection; the first sign change (+ → −)
 //!    is refined by `secant_steps` secant steps; no sign change = miss. The sampler's smallest
 //!    value is that ray's min-SDF point (the mask loss reuses it);
 //! 4. [`TraceMode::Refined`] (supplementary §6): threshold 1e-3 and one Newton step along the
@@ -244,7 +245,8 @@ pub fn trace(f: &dyn SdfBatch, rays: &Rays, cfg: &TraceConfig) -> Result<TraceRe
             if fv < 0.0 || step == cfg.sphere_steps {
                 // Overshot into the surface (or out of steps): the sampler looks from the last
                 // point known outside.
-                unfinished.push((i, if fv < 0.0 { last_pos } else { t }));
+                // Out of steps: the whole segment (its min-SDF point may lie behind t).
+                unfinished.push((i, if fv < 0.0 { last_pos } else { interval[i].0 }));
                 continue;
             }
             let tn = t + fv;

@@ -134,7 +134,7 @@ fn interrupt_flag() -> Arc<AtomicBool> {
 }
 
 fn read_curve(path: &Path, upto: u64) -> Vec<String> {
-    std::fs::read_to_string(path)
+    crate::util::read_text_bounded(path, 256 << 20)
         .map(|s| {
             s.lines()
                 .skip(1)
@@ -563,8 +563,20 @@ impl MaterialField for RadiancePreview<'_> {
 /// Read a run folder's scene record.
 pub fn read_run_scene(run_dir: &Path) -> Result<RunScene, DataError> {
     let p = run_dir.join(RUN_SCENE);
-    let s = std::fs::read_to_string(&p).map_err(|e| DataError::new(&p, format!("cannot read the run's scene record: {e} (is this a `pii-bake train` run folder?)")))?;
-    serde_json::from_str(&s).map_err(|e| DataError::new(&p, format!("not a run scene record: {e}")))
+    if !p.is_file() {
+        return Err(DataError::new(&p, "no run scene record here (is this a `pii-bake train` run folder?)"));
+    }
+    let v = crate::util::read_json_value(&p)?;
+    let rs: RunScene = serde_json::from_value(v).map_err(|e| DataError::new(&p, format!("not a run scene record: {e}")))?;
+    if !(rs.scale.is_finite() && rs.scale > 0.0) {
+        return Err(DataError::new(&p, format!("scale {} must be a positive number", rs.scale)));
+    }
+    let m = DMat3::from_cols_array(&rs.rotation);
+    let orthonormal = rs.rotation.iter().all(|v| v.is_finite()) && (m * m.transpose() - DMat3::IDENTITY).to_cols_array().iter().all(|v| v.abs() < 1e-6);
+    if !orthonormal || (m.determinant() - 1.0).abs() > 1e-6 {
+        return Err(DataError::new(&p, "rotation is not a rotation matrix"));
+    }
+    Ok(rs)
 }
 
 /// Export a trained stage-1 model through `export_asset`.
