@@ -31,12 +31,9 @@ pub enum Stage {
     Geometry,
 }
 
-/// Training options shared by `train` and `bake`.
+/// Training options shared by `train` and `bake` (each command has its own `--preset`).
 #[derive(Debug, Clone, clap::Args)]
 pub struct TrainOptions {
-    /// Network preset: `fast` (hash grid, CPU-friendly) or `paper` (IDR's 8×512 networks).
-    #[arg(long, value_enum, default_value_t = Preset::Fast)]
-    pub preset: Preset,
     /// Sphere tracing: `refined` (threshold 1e-3 + Newton step) or `classic` (5e-5, IDR's code).
     #[arg(long, value_enum, default_value_t = TraceMode::Refined)]
     pub tracing: TraceMode,
@@ -73,6 +70,9 @@ pub struct TrainArgs {
     /// Stage to train.
     #[arg(long, value_enum, default_value_t = Stage::Geometry)]
     pub stage: Stage,
+    /// Network preset: `fast` (hash grid, CPU-friendly) or `paper` (IDR's 8×512 networks).
+    #[arg(long, value_enum, default_value_t = Preset::Fast)]
+    pub preset: Preset,
     #[command(flatten)]
     pub opts: TrainOptions,
     /// Continue the run in `--out` from its last checkpoint.
@@ -164,6 +164,7 @@ fn write_curve(dir: &Path, lines: &[String]) -> Result<(), DataError> {
 /// Train stage 1 on `scene_path` into `run_dir` (see the module docs).
 pub fn train_stage1(
     scene_path: &Path,
+    preset: Preset,
     opts: &TrainOptions,
     run_dir: &Path,
     resume: bool,
@@ -192,7 +193,7 @@ pub fn train_stage1(
         key: key.clone(),
     };
 
-    let mut cfg = Stage1Config::for_scene(opts.preset, opts.tracing, opts.init, &views, held.len(), opts.downscale);
+    let mut cfg = Stage1Config::for_scene(preset, opts.tracing, opts.init, &views, held.len(), opts.downscale);
     cfg.seed = opts.seed;
     if let Some(n) = opts.iterations {
         cfg.iterations = n;
@@ -212,10 +213,10 @@ pub fn train_stage1(
     let resuming = resume && run_dir.join(CHECKPOINT).is_file();
     let mut trainer = if resuming {
         let (mut t, _) = Trainer::load(run_dir, Some(&key))?;
-        if t.cfg.preset != opts.preset {
+        if t.cfg.preset != preset {
             return Err(DataError::new(
                 &run_dir.join(CHECKPOINT),
-                format!("this run uses the {} preset, not {}", t.cfg.preset.name(), opts.preset.name()),
+                format!("this run uses the {} preset, not {}", t.cfg.preset.name(), preset.name()),
             )
             .into());
         }
@@ -435,7 +436,7 @@ pub fn run(args: &TrainArgs, ctx: &Context) -> anyhow::Result<()> {
     let backend = ctx.backend()?;
     match args.stage {
         Stage::Geometry => {
-            let r = train_stage1(&args.scene, &args.opts, &args.out, args.resume, args.stop_at, &backend, ctx)?;
+            let r = train_stage1(&args.scene, args.preset, &args.opts, &args.out, args.resume, args.stop_at, &backend, ctx)?;
             ctx.emit("train", r.report);
             ctx.say(format!("run written to {} (export it with `pii-bake export --run {} --out <asset-dir>`)", args.out.display(), args.out.display()));
             Ok(())
@@ -644,29 +645,18 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
         anyhow::bail!("--roughness must be in [0, 1], got {}", args.roughness);
     }
     let run_dir = args.run.clone().unwrap_or_else(|| args.asset.out.join("run"));
-    let opts = TrainOptions {
-        preset,
-        tracing: args.tracing,
-        init: args.init,
-        iterations: args.iterations,
-        rays: args.rays,
-        seed: args.seed,
-        checkpoint_every: None,
-        downscale: args.downscale.max(1),
-        init_steps: args.init_steps,
-    };
     ctx.say(format!(
         "bake: stage 1 (trained SDF geometry, {} preset) + a radiance preview for textures (the photos' lighting is not removed yet: stage 2 is not implemented)",
         preset.name()
     ));
-    let run = train_stage1(&args.scene, &opts, &run_dir, true, None, &backend, ctx)?;
+    let run = train_stage1(&args.scene, preset, &args.train, &run_dir, true, None, &backend, ctx)?;
     let name = args.asset.name.clone().unwrap_or_else(|| super::preview::name_from_path(&args.scene));
     let t = Instant::now();
     let mut exp = run.trainer.cfg.clone();
     exp.sizes.mesh_resolution = args.asset.resolution.unwrap_or(exp.sizes.mesh_resolution);
     let report = export_stage1(&backend, &run.trainer, &run.run_scene, &args.asset, &name, ctx)?;
     let seconds_export = t.elapsed().as_secs_f64();
-    let scene = crate::scene::load(&args.scene, &ReadOptions { downscale: args.downscale.max(1) })?;
+    let scene = crate::scene::load(&args.scene, &ReadOptions { downscale: args.train.downscale.max(1) })?;
     let gt = super::preview::ground_truth_metrics(
         &args.scene,
         scene.normalisation.center,

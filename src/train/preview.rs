@@ -55,24 +55,8 @@ pub struct BakeArgs {
     /// `fast` (default) or `paper`: train stage 1 and export it; `preview`: the visual hull, no training.
     #[arg(long, value_enum, default_value_t = BakePreset::Fast)]
     pub preset: BakePreset,
-    /// Sphere tracing for training: `refined` or `classic`.
-    #[arg(long, value_enum, default_value_t = crate::render::TraceMode::Refined)]
-    pub tracing: crate::render::TraceMode,
-    /// SDF initialisation: `hull` or `sphere`.
-    #[arg(long, value_enum, default_value_t = super::stage1::InitMode::Hull)]
-    pub init: super::stage1::InitMode,
-    /// Training iterations (default: the preset's).
-    #[arg(long)]
-    pub iterations: Option<u64>,
-    /// Rays per training iteration (default: the preset's).
-    #[arg(long)]
-    pub rays: Option<usize>,
-    /// Training seed.
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
-    /// Steps of the hull init's fit (default: the preset's).
-    #[arg(long)]
-    pub init_steps: Option<u64>,
+    #[command(flatten)]
+    pub train: super::cli::TrainOptions,
     /// Run folder for the training checkpoints (default: <out>/run); an existing run there resumes.
     #[arg(long)]
     pub run: Option<PathBuf>,
@@ -85,9 +69,6 @@ pub struct BakeArgs {
     /// Preview: a voxel must be seen by at least this fraction of the views to stay in the hull.
     #[arg(long, default_value_t = 0.5)]
     pub min_view_fraction: f32,
-    /// Integer image downscale factor.
-    #[arg(long, default_value_t = 1)]
-    pub downscale: usize,
 }
 
 /// A view in the normalised frame, as hull carving and photo projection see it.
@@ -358,7 +339,7 @@ pub fn run_preview(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
 
     // 1. Scene.
     let t = Instant::now();
-    let scene = crate::scene::load(&args.scene, &ReadOptions { downscale: args.downscale.max(1) })?;
+    let scene = crate::scene::load(&args.scene, &ReadOptions { downscale: args.train.downscale.max(1) })?;
     let mut views: Vec<&View> = scene.views_in(Split::Train).collect();
     if views.is_empty() {
         views = scene.views.iter().collect();

@@ -154,79 +154,63 @@ impl Stage1Config {
             held_out_views: held_out,
         };
         let trace = TraceConfig::new(mode);
+        // The fast preset; the paper preset changes the networks and their training below.
+        let levels = 16u32;
+        let base = 16u32;
+        let mut field = SdfFieldConfig::fast();
+        field.encoding = FieldEncoding::HashGrid {
+            levels: levels as usize,
+            features_per_level: 2,
+            log2_table_size: grid_log2_table,
+            base_resolution: base,
+            growth: ((grid_finest as f32 / base as f32).ln() / (levels - 1) as f32).exp(),
+        };
+        field.grad_step = (0.5 * footprint).clamp(5e-4, 5e-3);
+        let fast = Self {
+            preset,
+            field,
+            radiance_widths: vec![64, 64],
+            view_freqs: 4,
+            trace,
+            init,
+            hull_fit_steps: 200,
+            rays: 1024,
+            iterations: 1000,
+            lr_field: 2e-4,
+            lr_radiance: 5e-3,
+            lr_final_factor: 0.1,
+            eikonal_weight: 0.1,
+            eikonal_points: 512,
+            mask_weight: 100.0,
+            alpha_init: 50.0,
+            alpha_doublings: vec![0.125, 0.25, 0.375, 0.5, 0.625],
+            mask_samples: 32,
+            out_of_mask_min_sdf: false,
+            foreground_fraction: 0.5,
+            near_surface_sigma: 0.02,
+            coarse_levels: 0.5,
+            coarse_to_fine_end: 0.5,
+            radiance_warmup: 0.1,
+            seed: 0,
+            checkpoint_every: 100,
+            downscale,
+            sizes,
+        };
         match preset {
-            Preset::Fast => {
-                let mut field = SdfFieldConfig::fast();
-                let levels = 16u32;
-                let base = 16u32;
-                field.encoding = FieldEncoding::HashGrid {
-                    levels: levels as usize,
-                    features_per_level: 2,
-                    log2_table_size: grid_log2_table,
-                    base_resolution: base,
-                    growth: ((grid_finest as f32 / base as f32).ln() / (levels - 1) as f32).exp(),
-                };
-                field.grad_step = (0.5 * footprint).clamp(5e-4, 5e-3);
-                Self {
-                    preset,
-                    field,
-                    radiance_widths: vec![64, 64],
-                    view_freqs: 4,
-                    trace,
-                    init,
-                    hull_fit_steps: 200,
-                    rays: 1024,
-                    iterations: 1000,
-                    lr_field: 2e-4,
-                    lr_radiance: 5e-3,
-                    lr_final_factor: 0.1,
-                    eikonal_weight: 0.1,
-                    eikonal_points: 512,
-                    mask_weight: 100.0,
-                    alpha_init: 50.0,
-                    alpha_doublings: vec![0.125, 0.25, 0.375, 0.5, 0.625],
-                    mask_samples: 32,
-                    out_of_mask_min_sdf: false,
-                    foreground_fraction: 0.5,
-                    near_surface_sigma: 0.02,
-                    coarse_levels: 0.5,
-                    coarse_to_fine_end: 0.5,
-                    radiance_warmup: 0.1,
-                    seed: 0,
-                    checkpoint_every: 100,
-                    downscale,
-                    sizes,
-                }
-            }
+            Preset::Fast => fast,
             Preset::Paper => Self {
-                preset,
                 field: SdfFieldConfig::paper(),
                 radiance_widths: vec![512; 4],
-                view_freqs: 4,
-                trace,
-                init,
-                hull_fit_steps: 200,
                 rays: 2048,
                 iterations: 2000,
                 lr_field: 1e-4,
                 lr_radiance: 1e-4,
                 lr_final_factor: 0.25,
-                eikonal_weight: 0.1,
                 eikonal_points: 1024,
-                mask_weight: 100.0,
-                alpha_init: 50.0,
-                alpha_doublings: vec![0.125, 0.25, 0.375, 0.5, 0.625],
                 mask_samples: 100,
                 out_of_mask_min_sdf: true,
-                foreground_fraction: 0.5,
-                near_surface_sigma: 0.02,
-                coarse_levels: 0.5,
-                coarse_to_fine_end: 0.5,
-                radiance_warmup: 0.1,
-                seed: 0,
                 checkpoint_every: 50,
-                downscale,
-                sizes,
+                ..fast
             },
         }
     }
