@@ -188,7 +188,8 @@ impl Stage1Config {
             out_of_mask_min_sdf: false,
             foreground_fraction: 0.5,
             near_surface_sigma: 0.02,
-            coarse_levels: 0.5,
+            // Coarse to fine from a sphere; a hull fit has already set every level.
+            coarse_levels: if init == InitMode::Hull { 1.0 } else { 0.5 },
             coarse_to_fine_end: 0.5,
             radiance_warmup: 0.1,
             seed: 0,
@@ -778,8 +779,9 @@ impl Trainer {
             .map(|i| grid.centre(i % grid.res, (i / grid.res) % grid.res, i / (grid.res * grid.res)))
             .collect();
         let mut last = f64::NAN;
-        let levels = self.cfg.active_levels_at(0);
-        self.model.field.encoder.set_active_levels(levels);
+        // The fit sees every level: the hull's distance is known everywhere, so the fine levels
+        // are constrained (coarse to fine only guards the sparse photometric phase).
+        self.model.field.encoder.set_active_levels(None);
         // The fit has its own optimiser state: photometric training starts with fresh moments.
         let mut fit_state = AdamState::new(&self.host, self.model.sdf_params.len());
         let h = grid.spacing();
