@@ -185,8 +185,6 @@ fn a_few_steps_learn_a_silhouette() {
     let mut cfg = tiny_config();
     cfg.trace = pii_bake::render::TraceConfig::new(TraceMode::Refined);
     cfg.rays = 256;
-    let model = Model::new(&cfg).unwrap();
-    let _ = model;
     let mut t = Trainer::new(cfg.clone()).unwrap();
     let target_r = 0.35f32;
     let mut rng = pii_bake::util::rng(1);

@@ -218,7 +218,6 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
                 (c, n)
             };
             record(&tr, wall, &mut points);
-            let t_loop = Instant::now();
             let mut train_secs = 0.0;
             let mut last = (f64::NAN, f64::NAN);
             let (mut evals, mut steps) = (0usize, 0u64);
@@ -237,7 +236,6 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
             if tr.step % args.eval_every != 0 {
                 last = record(&tr, wall, &mut points);
             }
-            let _ = t_loop;
             let held_views: Vec<&View> = if held.is_empty() { views.iter().take(4).copied().collect() } else { held.iter().take(8).copied().collect() };
             let ev = evaluate_views(&backend, &tr.model, &cfg.trace, &held_views, 128 * 128)?;
             summary.push(serde_json::json!({

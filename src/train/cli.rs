@@ -652,8 +652,6 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
     let run = train_stage1(&args.scene, preset, &args.train, &run_dir, true, None, &backend, ctx)?;
     let name = args.asset.name.clone().unwrap_or_else(|| super::preview::name_from_path(&args.scene));
     let t = Instant::now();
-    let mut exp = run.trainer.cfg.clone();
-    exp.sizes.mesh_resolution = args.asset.resolution.unwrap_or(exp.sizes.mesh_resolution);
     let report = export_stage1(&backend, &run.trainer, &run.run_scene, &args.asset, &name, ctx)?;
     let seconds_export = t.elapsed().as_secs_f64();
     let scene = crate::scene::load(&args.scene, &ReadOptions { downscale: args.train.downscale.max(1) })?;
@@ -681,13 +679,5 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
         "export": report,
         "ground_truth": gt,
     });
-    crate::util::atomic_write(&args.asset.out.join("bake_report.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
-    ctx.emit("bake", summary);
-    ctx.say(format!(
-        "wrote {}/{}.glb, asset.usda, env.exr, bake_report.json in {:.1} s",
-        args.asset.out.display(),
-        name,
-        t_total.elapsed().as_secs_f64()
-    ));
-    Ok(())
+    super::preview::write_bake_report(&args.asset.out, &name, summary, t_total, ctx)
 }

@@ -489,14 +489,14 @@ pub fn run_preview(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
         "export": report,
         "ground_truth": gt_metrics,
     });
-    crate::util::atomic_write(&args.asset.out.join("bake_report.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
+    write_bake_report(&args.asset.out, &name, summary, t_total, ctx)
+}
+
+/// Write `bake_report.json` into the asset folder, emit it, and say what was written.
+pub fn write_bake_report(out: &Path, name: &str, summary: serde_json::Value, t_total: Instant, ctx: &Context) -> anyhow::Result<()> {
+    crate::util::atomic_write(&out.join("bake_report.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
     ctx.emit("bake", summary);
-    ctx.say(format!(
-        "wrote {}/{}.glb, asset.usda, env.exr, bake_report.json in {:.1} s",
-        args.asset.out.display(),
-        name,
-        t_total.elapsed().as_secs_f64()
-    ));
+    ctx.say(format!("wrote {}/{name}.glb, asset.usda, env.exr, bake_report.json in {:.1} s", out.display(), t_total.elapsed().as_secs_f64()));
     Ok(())
 }
 

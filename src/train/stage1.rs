@@ -410,11 +410,6 @@ pub struct Model {
     pub radiance_params: Vec<f32>,
 }
 
-/// What one forward of the radiance net on surface points needs.
-struct SurfaceInput {
-    input: Vec<f32>,
-}
-
 impl Model {
     pub fn new(cfg: &Stage1Config) -> Result<Self, BackendError> {
         let field = SdfField::new(cfg.field.clone())?;
@@ -435,7 +430,7 @@ impl Model {
         Ok(out)
     }
 
-    fn radiance_input(&self, x: &[[f32; 3]], dirs: &[[f32; 3]], o: &FieldOutputs, range: std::ops::Range<usize>) -> SurfaceInput {
+    fn radiance_input(&self, x: &[[f32; 3]], dirs: &[[f32; 3]], o: &FieldOutputs, range: std::ops::Range<usize>) -> Vec<f32> {
         let fd = self.field.config.feature_dim;
         let view: Vec<f32> = dirs.iter().flat_map(|d| [-d[0], -d[1], -d[2]]).collect();
         let venc = encoding_forward_cpu(&self.view_encoding, &[], &view, 3);
@@ -447,7 +442,7 @@ impl Model {
             input.extend_from_slice(&o.gradient[3 * i..3 * i + 3]);
             input.extend_from_slice(&o.feature[fd * i..fd * (i + 1)]);
         }
-        SurfaceInput { input }
+        input
     }
 
     /// Colour (sRGB, [0, 1]) at surface points seen along `dirs`: forward only.
@@ -457,7 +452,7 @@ impl Model {
         }
         let o = self.field.eval_with_gradient(backend, &self.sdf_params, bytemuck::cast_slice(x))?;
         let si = self.radiance_input(x, dirs, &o, 0..x.len());
-        let fwd = backend.mlp_forward(&self.radiance, &backend.upload(&self.radiance_params), &backend.from_vec(si.input), false)?;
+        let fwd = backend.mlp_forward(&self.radiance, &backend.upload(&self.radiance_params), &backend.from_vec(si), false)?;
         let out = backend.to_vec(&fwd.output)?;
         Ok(out.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
     }
@@ -602,7 +597,7 @@ pub fn loss_and_grad(
         if ns > 0 {
             let si = model.radiance_input(&x0, &dirs, o, 0..ns);
             let r = (|| {
-                let fwd = backend.mlp_forward(&model.radiance, &rad_params, &backend.from_vec(si.input), true)?;
+                let fwd = backend.mlp_forward(&model.radiance, &rad_params, &backend.from_vec(si), true)?;
                 let c = backend.to_vec(&fwd.output)?;
                 let mut dc = vec![0f32; 3 * ns];
                 for k in 0..ns {
