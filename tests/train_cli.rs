@@ -207,17 +207,20 @@ fn bad_scenes_and_folders_give_clear_errors() {
 }
 
 #[test]
-fn bake_trains_stage_one_and_ships_it() {
+fn bake_trains_both_stages_and_ships_them() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("asset");
     let ex = example();
     let o = pii(&[
         "bake", ex.to_str().unwrap(), "--out", out.to_str().unwrap(), "--iterations", "4", "--rays", "96", "--downscale", "4",
         "--init", "hull", "--init-steps", "10", "--resolution", "40", "--texture", "64", "--name", "spot",
+        "--lobes", "4", "--material-iterations", "2", "--material-batch", "64", "--material-set", "points=500",
     ]);
     assert!(o.status.success(), "{}", text(&o));
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("bake_report.json")).unwrap()).unwrap();
-    assert_eq!(report["method"], "stage1-fast");
+    assert_eq!(report["method"], "stage1+stage2-fast");
+    assert_eq!(report["material"]["steps"], 2);
+    assert_eq!(report["stages"].as_array().unwrap().len(), 3);
     assert_eq!(report["training"]["steps"], 4);
     assert!(report["training"]["hull_init"]["fit_steps"] == 10);
     assert!(report["ground_truth"]["metrics"]["chamfer"].as_f64().is_some(), "{}", report["ground_truth"]);

@@ -49,11 +49,13 @@ pub enum Command {
     Eval(crate::eval::cli::EvalArgs),
     /// Fit K spherical Gaussians to an HDR latlong environment map.
     FitEnv(crate::sg::cli::FitEnvArgs),
-    /// Photos → asset (.glb/.usda/.exr): trains stage 1 (geometry) and exports it; `--preset
-    /// preview` ships the visual hull without training.
+    /// Photos → asset (.glb/.usda/.exr): trains stage 1 (geometry) and stage 2 (light, material,
+    /// indirect light) and exports them; `--preset preview` ships the visual hull without training.
     Bake(crate::train::preview::BakeArgs),
     /// Train a stage of the inverse-rendering model into a run folder (checkpoints, resume).
     Train(crate::train::cli::TrainArgs),
+    /// Render a trained run under other HDR environments from a scene's test cameras (for `eval`).
+    Relight(crate::train::relight::RelightArgs),
     /// Export an asset (mesh, UVs, baked textures, glTF/USD/EXR) from a trained run or an analytic field.
     Export(crate::export::cli::ExportArgs),
     /// Benchmarks: write figures (JSON/CSV) and charts.
@@ -129,6 +131,7 @@ pub fn run(cmd: &Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Bake(a) => crate::train::preview::run(a, ctx),
         Command::Train(a) => crate::train::cli::run(a, ctx),
         Command::Export(a) => crate::export::cli::run(a, ctx),
+        Command::Relight(a) => crate::train::relight::run(a, ctx),
         Command::Bench(BenchCommand::Nn(a)) => crate::nn::bench::run(a, ctx),
         Command::Bench(BenchCommand::Env(a)) => crate::sg::bench::run(a, ctx),
         Command::Bench(BenchCommand::Export(a)) => crate::export::bench::run(a, ctx),

@@ -29,6 +29,10 @@ use crate::util::DataError;
 pub enum Stage {
     /// Stage 1: SDF + radiance net.
     Geometry,
+    /// Stage 2 on the stage-1 run in `--out`: SG environment, material autoencoder, indirect light.
+    Material,
+    /// Both stages, one after the other.
+    All,
 }
 
 /// Training options shared by `train` and `bake` (each command has its own `--preset`).
@@ -75,6 +79,8 @@ pub struct TrainArgs {
     pub preset: Preset,
     #[command(flatten)]
     pub opts: TrainOptions,
+    #[command(flatten)]
+    pub material: super::material::MaterialOptions,
     /// Continue the run in `--out` from its last checkpoint.
     #[arg(long)]
     pub resume: bool,
@@ -120,7 +126,7 @@ pub fn train_views(scene: &Scene) -> (Vec<&View>, Vec<&View>) {
 }
 
 /// Set by Ctrl-C; the loop checkpoints and stops.
-fn interrupt_flag() -> Arc<AtomicBool> {
+pub fn interrupt_flag() -> Arc<AtomicBool> {
     static FLAG: std::sync::OnceLock<Arc<AtomicBool>> = std::sync::OnceLock::new();
     FLAG.get_or_init(|| {
         let f = Arc::new(AtomicBool::new(false));
@@ -438,10 +444,20 @@ pub fn run(args: &TrainArgs, ctx: &Context) -> anyhow::Result<()> {
         Stage::Geometry => {
             let r = train_stage1(&args.scene, args.preset, &args.opts, &args.out, args.resume, args.stop_at, &backend, ctx)?;
             ctx.emit("train", r.report);
-            ctx.say(format!("run written to {} (export it with `pii-bake export --run {} --out <asset-dir>`)", args.out.display(), args.out.display()));
-            Ok(())
+        }
+        Stage::Material => {
+            let r = super::material::train_stage2(&args.scene, args.preset, &args.material, args.opts.seed, &args.out, args.resume, args.stop_at, &backend, ctx)?;
+            ctx.emit("train", r.report);
+        }
+        Stage::All => {
+            let r = train_stage1(&args.scene, args.preset, &args.opts, &args.out, true, None, &backend, ctx)?;
+            ctx.emit("train", r.report);
+            let r = super::material::train_stage2(&args.scene, args.preset, &args.material, args.opts.seed, &args.out, args.resume, args.stop_at, &backend, ctx)?;
+            ctx.emit("train", r.report);
         }
     }
+    ctx.say(format!("run written to {} (export it with `pii-bake export --run {} --out <asset-dir>`)", args.out.display(), args.out.display()));
+    Ok(())
 }
 
 // ---- export of a trained run --------------------------------------------------------------
@@ -629,11 +645,17 @@ pub fn export_run(run_dir: &Path, asset: &AssetArgs, ctx: &Context) -> anyhow::R
     }
     let backend = ctx.backend()?;
     let name = crate::train::preview::name_from_path(&rs.scene);
+    if run_dir.join(super::stage2::CHECKPOINT2).is_file() {
+        let (s2, _, _) = super::stage2::Stage2Trainer::load(run_dir, Some(&rs.key))?;
+        return super::material::export_stage2(&backend, &trainer, &s2, &rs, asset, &name, ctx);
+    }
+    ctx.say("this run has no stage-2 checkpoint: exporting the stage-1 radiance preview (lighting baked in)");
     export_stage1(&backend, &trainer, &rs, asset, &name, ctx)
 }
 
-/// `bake` with a training preset: stage 1 into the run folder (resuming one that is there), then
-/// the export, the ground-truth comparison when the scene has one, and `bake_report.json`.
+/// `bake` with a training preset: stage 1 and stage 2 into the run folder (resuming what is
+/// there), then the export, the ground-truth comparison when the scene has one, and
+/// `bake_report.json`. `--geometry-only` stops after stage 1 and ships its radiance preview.
 pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::Result<()> {
     let t_total = Instant::now();
     let backend = ctx.backend()?;
@@ -644,16 +666,30 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
     if !(0.0..=1.0).contains(&args.roughness) {
         anyhow::bail!("--roughness must be in [0, 1], got {}", args.roughness);
     }
+    crate::export::check_writable(&args.asset.out)?;
     let run_dir = args.run.clone().unwrap_or_else(|| args.asset.out.join("run"));
     ctx.say(format!(
-        "bake: stage 1 (trained SDF geometry, {} preset) + a radiance preview for textures (the photos' lighting is not removed yet: stage 2 is not implemented)",
-        preset.name()
+        "bake ({} preset): stage 1 (trained SDF geometry){}",
+        preset.name(),
+        if args.geometry_only { " only, with a radiance preview for textures (lighting baked in)" } else { " + stage 2 (SG environment, material, indirect light) + export" }
     ));
+    let t1 = Instant::now();
     let run = train_stage1(&args.scene, preset, &args.train, &run_dir, true, None, &backend, ctx)?;
+    let seconds_stage1 = t1.elapsed().as_secs_f64();
     let name = args.asset.name.clone().unwrap_or_else(|| super::preview::name_from_path(&args.scene));
+    let mut stage2_report = serde_json::Value::Null;
+    let mut seconds_stage2 = 0.0;
     let t = Instant::now();
-    let report = export_stage1(&backend, &run.trainer, &run.run_scene, &args.asset, &name, ctx)?;
-    let seconds_export = t.elapsed().as_secs_f64();
+    let report = if args.geometry_only {
+        export_stage1(&backend, &run.trainer, &run.run_scene, &args.asset, &name, ctx)?
+    } else {
+        let t2 = Instant::now();
+        let r2 = super::material::train_stage2(&args.scene, preset, &args.material, args.train.seed, &run_dir, true, None, &backend, ctx)?;
+        seconds_stage2 = t2.elapsed().as_secs_f64();
+        stage2_report = r2.report.clone();
+        super::material::export_stage2(&backend, &run.trainer, &r2.trainer, &run.run_scene, &args.asset, &name, ctx)?
+    };
+    let seconds_export = t.elapsed().as_secs_f64() - seconds_stage2;
     let scene = crate::scene::load(&args.scene, &ReadOptions { downscale: args.train.downscale.max(1) })?;
     let gt = super::preview::ground_truth_metrics(
         &args.scene,
@@ -663,19 +699,36 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
         &report,
         ctx,
     )?;
-    let summary = serde_json::json!({
-        "method": format!("stage1-{}", preset.name()),
-        "what": {
+    let what = if args.geometry_only {
+        serde_json::json!({
             "geometry": "trained SDF (stage 1), marching cubes",
             "albedo": "radiance preview: the stage-1 radiance net seen along the normal (lighting baked in, not de-lit)",
             "roughness": format!("constant {}", args.roughness),
             "environment": "uniform white (radiance 1)",
-            "not_done": "stage 2 (environment, material, indirect light) is not implemented: the textures hold lit colour",
-        },
+        })
+    } else {
+        serde_json::json!({
+            "geometry": "trained SDF (stage 1), marching cubes",
+            "albedo": "stage-2 material autoencoder (de-lit; scale-ambiguous with the environment)",
+            "roughness": "stage-2 material autoencoder",
+            "environment": "stage-2 SG lobes, rendered to env.exr and listed in the SG JSON",
+        })
+    };
+    let weak = run.report["weak_result"].as_bool().unwrap_or(false) || stage2_report["weak_result"].as_bool().unwrap_or(false);
+    let summary = serde_json::json!({
+        "method": format!("{}-{}", if args.geometry_only { "stage1" } else { "stage1+stage2" }, preset.name()),
+        "what": what,
+        "stages": [
+            { "stage": "geometry", "seconds": seconds_stage1, "report": "run/train_report.json" },
+            { "stage": "material", "seconds": seconds_stage2, "skipped": args.geometry_only, "report": "run/material_report.json" },
+            { "stage": "export", "seconds": seconds_export },
+        ],
         "scene": run.report["scene"].clone(),
         "training": run.report,
+        "material": stage2_report,
+        "weak_result": weak,
         "run": run_dir.display().to_string(),
-        "seconds": { "train": t_total.elapsed().as_secs_f64() - seconds_export, "export": seconds_export, "total": t_total.elapsed().as_secs_f64() },
+        "seconds": { "stage1": seconds_stage1, "stage2": seconds_stage2, "export": seconds_export, "total": t_total.elapsed().as_secs_f64() },
         "export": report,
         "ground_truth": gt,
     });

@@ -3,6 +3,9 @@
 pub mod bench;
 pub mod cli;
 pub mod hull;
+pub mod material;
 pub mod photo;
 pub mod preview;
+pub mod relight;
 pub mod stage1;
+pub mod stage2;

@@ -52,18 +52,23 @@ pub struct BakeArgs {
     pub scene: PathBuf,
     #[command(flatten)]
     pub asset: crate::export::AssetArgs,
-    /// `fast` (default) or `paper`: train stage 1 and export it; `preview`: the visual hull, no training.
+    /// `fast` (default) or `paper`: train stages 1 and 2 and export them; `preview`: the visual hull, no training.
     #[arg(long, value_enum, default_value_t = BakePreset::Fast)]
     pub preset: BakePreset,
     #[command(flatten)]
     pub train: super::cli::TrainOptions,
+    #[command(flatten)]
+    pub material: super::material::MaterialOptions,
+    /// Stop after stage 1 and ship its radiance preview (lighting baked in, constant roughness).
+    #[arg(long)]
+    pub geometry_only: bool,
     /// Run folder for the training checkpoints (default: <out>/run); an existing run there resumes.
     #[arg(long)]
     pub run: Option<PathBuf>,
     /// Preview: visual-hull grid resolution (voxels per side of the normalised cube [-1, 1]^3).
     #[arg(long, default_value_t = 128)]
     pub hull_resolution: usize,
-    /// Constant perceptual roughness of the shipped material (stage 2 will estimate it).
+    /// Constant perceptual roughness of the preview and `--geometry-only` materials (stage 2 estimates it).
     #[arg(long, default_value_t = 0.5)]
     pub roughness: f32,
     /// Preview: a voxel must be seen by at least this fraction of the views to stay in the hull.

@@ -371,6 +371,11 @@ impl TrainData {
         Ok(Self { views: out, offsets, foreground })
     }
 
+    /// Masked (foreground) training pixels.
+    pub fn foreground_pixels(&self) -> usize {
+        self.foreground.len()
+    }
+
     pub fn pixels(&self) -> usize {
         *self.offsets.last().unwrap()
     }

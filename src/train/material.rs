@@ -1,0 +1,513 @@
+//! The command-line side of [`super::stage2`]: `train --stage material` on a stage-1 run (the
+//! surface cache, the loop with progress, checkpoints, Ctrl-C and `--resume`, held-out
+//! evaluation), the renderer of a trained stage-2 model (under its learned light or another
+//! environment: `relight`), and the export of a stage-2 run (albedo/roughness from the material
+//! field, the learned environment).
+
+use std::path::Path;
+use std::sync::atomic::Ordering;
+use std::time::Instant;
+
+use anyhow::Context as _;
+use glam::DMat3;
+use rayon::prelude::*;
+
+use super::cli::{read_run_scene, train_views, RunScene, TrainedSdf};
+use super::stage1::{scene_key, Model as Stage1Model, Preset, TrainData, Trainer, CHECKPOINT};
+use super::stage2::{shade_f64, DecoderMode, IndirectMode, Stage2Config, Stage2Model, Stage2Stats, Stage2Trainer, SurfaceCache, CHECKPOINT2};
+use crate::backend::{Backend, BackendError};
+use crate::context::Context;
+use crate::export::{AssetArgs, ExportConfig, ExportReport};
+use crate::mesh::field::{MaterialField, MaterialSamples};
+use crate::mesh::MeshConfig;
+use crate::render::{trace, trace_secondary, Rays, TraceConfig};
+use crate::scene::{Camera, Format, ReadOptions, View};
+use crate::sg::shade::Sg;
+use crate::util::DataError;
+
+/// Stage-2 options shared by `train --stage material` and `bake`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct MaterialOptions {
+    /// Environment SG lobes (default: the preset's, 32 fast / 128 paper; lobes that end with no
+    /// energy are reported).
+    #[arg(long)]
+    pub lobes: Option<usize>,
+    /// Indirect light: `ours` (F_ind at the secondary hit), `none` (PhySG-like), `uniform` (NeRV-like).
+    #[arg(long, value_enum, default_value_t = IndirectMode::Ours)]
+    pub indirect: IndirectMode,
+    /// Material decoders (default: `separate` for synthetic transforms.json scenes, `shared` for
+    /// real captures).
+    #[arg(long, value_enum)]
+    pub decoder: Option<DecoderMode>,
+    /// Stage-2 iterations (default: the preset's).
+    #[arg(long)]
+    pub material_iterations: Option<u64>,
+    /// Stage-2 surface points per iteration (default: the preset's).
+    #[arg(long)]
+    pub material_batch: Option<usize>,
+    /// Stage-2 setting overrides, KEY=VALUE (any field of the stage-2 config), repeatable.
+    #[arg(long = "material-set")]
+    pub material_set: Vec<String>,
+}
+
+impl Default for MaterialOptions {
+    fn default() -> Self {
+        Self { lobes: None, indirect: IndirectMode::Ours, decoder: None, material_iterations: None, material_batch: None, material_set: Vec::new() }
+    }
+}
+
+const CURVE2: &str = "material_curve.csv";
+
+/// A finished stage-2 run.
+pub struct Stage2Run {
+    pub trainer: Stage2Trainer,
+    pub report: serde_json::Value,
+}
+
+/// Everything stage 2 needs from a stage-1 run folder, checked.
+pub struct Stage1Checked {
+    pub trainer: Trainer,
+    pub run_scene: RunScene,
+}
+
+/// Load the stage-1 run in `run_dir` (clear errors when it is missing or from another scene).
+pub fn load_stage1(run_dir: &Path, key: Option<&str>) -> Result<Stage1Checked, DataError> {
+    if !run_dir.join(CHECKPOINT).is_file() {
+        return Err(DataError::new(
+            &run_dir.join(CHECKPOINT),
+            "stage 2 needs a stage-1 run here: train the geometry first (`pii-bake train <scene> --out <run-dir>`)",
+        ));
+    }
+    let run_scene = read_run_scene(run_dir)?;
+    if let Some(k) = key {
+        if k != run_scene.key {
+            return Err(DataError::new(&run_dir.join(CHECKPOINT), format!("this run was trained on another scene ({}), not {k}", run_scene.key)));
+        }
+    }
+    let (trainer, _) = Trainer::load(run_dir, Some(&run_scene.key))?;
+    Ok(Stage1Checked { trainer, run_scene })
+}
+
+fn curve_line(s: &Stage2Stats, secs: f64) -> String {
+    format!("{},{:.6},{:.6},{:.6},{:.6},{:.3},{},{},{:.4}", s.step, s.loss, s.rgb, s.smooth, s.kl, s.psnr, s.blocked, s.applied as u8, secs)
+}
+
+fn write_curve(dir: &Path, lines: &[String]) -> Result<(), DataError> {
+    let mut s = String::from("step,loss,rgb,smooth,kl,psnr,blocked,applied,seconds\n");
+    for l in lines {
+        s.push_str(l);
+        s.push('\n');
+    }
+    crate::util::atomic_write(&dir.join(CURVE2), s.as_bytes())
+}
+
+fn read_curve(path: &Path, upto: u64) -> Vec<String> {
+    let Ok(text) = crate::util::read_text_bounded(path, 64 << 20) else { return Vec::new() };
+    text.lines().skip(1).filter(|l| l.split(',').next().and_then(|s| s.parse::<u64>().ok()).is_some_and(|s| s <= upto)).map(str::to_string).collect()
+}
+
+/// The stage-2 configuration for a scene and the options, with the reasons for its sizes.
+pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, opts: &MaterialOptions, seed: u64) -> anyhow::Result<(Stage2Config, serde_json::Value)> {
+    let mut cfg = Stage2Config::new(preset, data.foreground_pixels());
+    cfg.seed = seed;
+    cfg.indirect = opts.indirect;
+    let synthetic = matches!(format, Format::Transforms);
+    cfg.decoder = opts.decoder.unwrap_or(if synthetic { DecoderMode::Separate } else { DecoderMode::Shared });
+    if let Some(k) = opts.lobes {
+        cfg.lobes = k;
+    }
+    if let Some(n) = opts.material_iterations {
+        cfg.iterations = n;
+    }
+    if let Some(n) = opts.material_batch {
+        cfg.batch = n;
+    }
+    let cfg = super::stage2::apply_overrides(cfg, &opts.material_set)?;
+    let why = serde_json::json!({
+        "lobes": if opts.lobes.is_some() { "forced by --lobes".to_string() } else { format!("{} preset default; lobes left with no energy are reported after training", preset.name()) },
+        "decoder": if opts.decoder.is_some() { "forced by --decoder".to_string() } else if synthetic { "separate: a synthetic (transforms.json) scene".to_string() } else { "shared: a real capture (supplementary §5.2)".to_string() },
+        "points": format!("min(preset cap, {} masked training pixels)", data.foreground_pixels()),
+    });
+    Ok((cfg, why))
+}
+
+/// Train stage 2 on the stage-1 run in `run_dir`.
+#[allow(clippy::too_many_arguments)]
+pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, seed: u64, run_dir: &Path, resume: bool, stop_at: Option<u64>, backend: &Backend, ctx: &Context) -> anyhow::Result<Stage2Run> {
+    let t_total = Instant::now();
+    crate::export::check_writable(run_dir)?;
+    let s1 = load_stage1(run_dir, None)?;
+    let downscale = s1.trainer.cfg.downscale.max(1);
+    let scene = crate::scene::load(scene_path, &ReadOptions { downscale })?;
+    let (views, held) = train_views(&scene);
+    let key = scene_key(&scene, &views);
+    if key != s1.run_scene.key {
+        return Err(DataError::new(&run_dir.join(CHECKPOINT), format!("the stage-1 run here was trained on another scene ({}), not {} ({key})", s1.run_scene.key, scene_path.display())).into());
+    }
+    let data = TrainData::new(&views, 1.0)?;
+    let (mut cfg, why) = stage2_config(preset, scene.format, &data, opts, seed)?;
+    let mut curve = Vec::new();
+    let resuming = resume && run_dir.join(CHECKPOINT2).is_file();
+    let (mut trainer, traced) = if resuming {
+        let (mut t, _, traced) = Stage2Trainer::load(run_dir, Some(&key))?;
+        if t.cfg().preset != preset {
+            return Err(DataError::new(&run_dir.join(CHECKPOINT2), format!("this stage-2 run uses the {} preset, not {}", t.cfg().preset.name(), preset.name())).into());
+        }
+        if let Some(n) = opts.material_iterations {
+            t.model.cfg.iterations = n;
+        }
+        curve = read_curve(&run_dir.join(CURVE2), t.step);
+        ctx.say(format!("resuming stage 2 in {} at step {} of {}", run_dir.display(), t.step, t.cfg().iterations));
+        (t, traced)
+    } else {
+        (Stage2Trainer::new(&cfg)?, Vec::new())
+    };
+    cfg = trainer.cfg().clone();
+    let sdf = &s1.trainer.model;
+    let tc = &s1.trainer.cfg.trace;
+
+    // The surface cache: primary points once; secondary hits per lobe.
+    let tcache = Instant::now();
+    let mut cache = SurfaceCache::build(backend, sdf, tc, &data, cfg.points, cfg.seed)?;
+    if cache.len() < 16 {
+        return Err(DataError::new(scene_path, format!("only {} masked training pixels reach the stage-1 surface: the geometry does not match the masks (retrain stage 1)", cache.len())).into());
+    }
+    let pb = ctx.progress(cfg.lobes as u64, "tracing toward lobes");
+    if cfg.indirect != IndirectMode::None {
+        let axes = if traced.len() == cfg.lobes { traced } else { trainer.model.axes() };
+        for (k, a) in axes.iter().enumerate() {
+            cache.trace_lobe(backend, sdf, &cfg, k, *a)?;
+            pb.set_position(k as u64 + 1);
+        }
+    }
+    pb.finish_and_clear();
+    let seconds_cache = tcache.elapsed().as_secs_f64();
+    let primary_evals = cache.evaluations;
+    ctx.say(format!(
+        "stage 2 ({} preset, indirect {}, {} decoder): {} lobes, {} cached surface points, {:.1}% of (point, lobe above the horizon) pairs blocked; cache traced once in {:.1} s ({} field evaluations) — without it every iteration would trace {} rays",
+        cfg.preset.name(),
+        cfg.indirect.name(),
+        match cfg.decoder { DecoderMode::Separate => "separate", DecoderMode::Shared => "shared" },
+        cfg.lobes,
+        cache.len(),
+        100.0 * cache.blocked_fraction(),
+        seconds_cache,
+        primary_evals,
+        cfg.batch * (cfg.lobes / 2 + 1)
+    ));
+
+    let stop = super::cli::interrupt_flag();
+    let pb = ctx.progress(cfg.iterations, "stage 2");
+    if let Ok(style) = indicatif::ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {per_sec} eta {eta}") {
+        pb.set_style(style.progress_chars("=> "));
+    }
+    pb.set_position(trainer.step);
+    let t_loop = Instant::now();
+    let step0 = trainer.step;
+    let end = stop_at.unwrap_or(cfg.iterations).min(cfg.iterations);
+    let mut last = Stage2Stats::default();
+    let mut retrace_s = 0.0;
+    while trainer.step < end {
+        let ts = Instant::now();
+        let tr = Instant::now();
+        cache.refresh(backend, sdf, &cfg, &trainer.model.axes())?;
+        retrace_s += tr.elapsed().as_secs_f64();
+        let s = trainer.train_step(backend, &cache)?;
+        curve.push(curve_line(&s, ts.elapsed().as_secs_f64()));
+        let its = (trainer.step - step0) as f64 / t_loop.elapsed().as_secs_f64().max(1e-9);
+        pb.set_position(trainer.step);
+        pb.set_message(format!("loss {:.4} (rgb {:.4} smooth {:.4} kl {:.4}) psnr {:.1} {:.2} it/s", s.loss, s.rgb, s.smooth, s.kl, s.psnr, its));
+        ctx.emit("progress", serde_json::json!({ "stage": "material", "iterations": cfg.iterations, "it_per_s": its, "skipped": trainer.skipped, "stats": s }));
+        last = s;
+        let interrupted = stop.load(Ordering::SeqCst);
+        if trainer.step % cfg.checkpoint_every == 0 || trainer.step == end || interrupted {
+            trainer.save(run_dir, &key, &cache.traced_axes)?;
+            write_curve(run_dir, &curve)?;
+        }
+        if interrupted {
+            pb.abandon();
+            anyhow::bail!(
+                "interrupted at stage-2 step {} of {}: checkpoint written to {}; continue with `pii-bake train {} --out {} --stage material --resume`",
+                trainer.step,
+                cfg.iterations,
+                run_dir.join(CHECKPOINT2).display(),
+                scene_path.display(),
+                run_dir.display()
+            );
+        }
+    }
+    pb.finish_and_clear();
+    if trainer.step == step0 {
+        trainer.save(run_dir, &key, &cache.traced_axes)?;
+        write_curve(run_dir, &curve)?;
+    }
+    let seconds_train = t_loop.elapsed().as_secs_f64();
+    let its = (trainer.step - step0) as f64 / seconds_train.max(1e-9);
+
+    // Held-out views rendered with the learned light and material.
+    let t_eval = Instant::now();
+    let eval_views: Vec<&View> = if held.is_empty() { views.iter().step_by((views.len() / 3).max(1)).take(3).copied().collect() } else { held.iter().take(4).copied().collect() };
+    let mut per_view = Vec::new();
+    let (mut se, mut wsum) = (0.0f64, 0.0f64);
+    for v in &eval_views {
+        let img = render_view(backend, sdf, tc, &trainer.model, &v.camera, 80 * 80, None)?;
+        let (mut vse, mut vw) = (0.0, 0.0);
+        for (k, &p) in img.pixel_index.iter().enumerate() {
+            let m = v.mask.as_ref().map(|m| m[p]).unwrap_or(1.0);
+            if m < 0.5 {
+                continue;
+            }
+            let col = img.rgb[k].map(crate::image_io::linear_to_srgb);
+            for ch in 0..3 {
+                let gt = crate::image_io::linear_to_srgb(v.image.data[p * v.image.channels + ch].clamp(0.0, 1.0));
+                vse += ((col[ch] - gt) as f64).powi(2);
+            }
+            vw += 3.0;
+        }
+        per_view.push(serde_json::json!({ "view": v.name, "psnr": crate::eval::psnr_from_mse(vse / f64::max(vw, 1.0)) }));
+        se += vse;
+        wsum += vw;
+    }
+    let psnr = crate::eval::psnr_from_mse(se / wsum.max(1.0));
+    let lobes = trainer.model.lobes();
+    let energy: Vec<f64> = lobes.iter().map(|l| (l.mu[0] + l.mu[1] + l.mu[2]) / 3.0 * crate::sg::shade::sg_integral(l.lambda)).collect();
+    let total: f64 = energy.iter().sum();
+    let idle = energy.iter().filter(|e| **e < 1e-3 * total.max(1e-12)).count();
+    let (alb, rough) = trainer.model.material(backend, &cache.x[..cache.len().min(4096)])?;
+    let mean_rough = rough.iter().map(|&r| r as f64).sum::<f64>() / rough.len().max(1) as f64;
+    let mean_alb: Vec<f64> = (0..3).map(|c| alb.iter().map(|a| a[c] as f64).sum::<f64>() / alb.len().max(1) as f64).collect();
+    let finite = trainer.model.light.iter().chain(&trainer.model.enc_params).all(|v| v.is_finite());
+    let mut flags = Vec::new();
+    if psnr < 20.0 {
+        flags.push(format!("held-out PSNR {psnr:.1} dB < 20 dB: light/material separation is weak (glossy or textureless object, few views?)"));
+    }
+    if trainer.skipped * 10 > trainer.step.max(1) {
+        flags.push(format!("{} of {} steps skipped for non-finite gradients", trainer.skipped, trainer.step));
+    }
+    if !finite {
+        flags.push("non-finite parameters".to_string());
+    }
+    if mean_rough < 0.05 || mean_rough > 0.95 {
+        flags.push(format!("roughness saturated (mean {mean_rough:.2})"));
+    }
+    let report = serde_json::json!({
+        "stage": "material",
+        "preset": cfg.preset,
+        "backend": backend.describe(),
+        "config": cfg,
+        "sizes": { "lobes": cfg.lobes, "lobes_without_energy": idle, "points": cache.len(), "batch": cfg.batch, "parameters": trainer.model.num_params(), "why": why },
+        "cache": { "points": cache.len(), "blocked_fraction": cache.blocked_fraction(), "field_evaluations": cache.evaluations, "seconds": seconds_cache, "lobes_retraced": cache.retraced, "seconds_retracing": retrace_s,
+                   "rays_per_iteration_without_cache": cfg.batch * cfg.lobes / 2 },
+        "steps": trainer.step,
+        "skipped_steps": trainer.skipped,
+        "last": last,
+        "it_per_s": its,
+        "material": { "mean_albedo": mean_alb, "mean_roughness": mean_rough },
+        "environment": { "total_energy": total },
+        "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr": psnr, "per_view": per_view, "seconds": t_eval.elapsed().as_secs_f64() },
+        "weak_result": !flags.is_empty(),
+        "flags": flags,
+        "seconds": { "cache": seconds_cache, "train": seconds_train, "total": t_total.elapsed().as_secs_f64() },
+    });
+    crate::util::atomic_write(&run_dir.join("material_report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    ctx.say(format!(
+        "stage 2: {} steps ({} skipped) at {:.2} it/s; {}: PSNR {:.2} dB (learned light and material); {} of {} lobes without energy{}",
+        trainer.step,
+        trainer.skipped,
+        its,
+        if held.is_empty() { "training views" } else { "held-out views" },
+        psnr,
+        idle,
+        cfg.lobes,
+        if flags.is_empty() { String::new() } else { format!(" — WEAK RESULT: {}", flags.join("; ")) }
+    ));
+    Ok(Stage2Run { trainer, report })
+}
+
+// ---- rendering a trained model -------------------------------------------------------------
+
+/// A rendered view: per rendered pixel (row-major, every `step`-th pixel) the pixel index in the
+/// full image, and for hits the linear colour, albedo, roughness.
+#[derive(Clone, Debug, Default)]
+pub struct RenderedView {
+    pub width: usize,
+    pub height: usize,
+    pub pixel_index: Vec<usize>,
+    pub hit: Vec<bool>,
+    pub rgb: Vec<[f32; 3]>,
+    pub albedo: Vec<[f32; 3]>,
+    pub roughness: Vec<f32>,
+}
+
+/// Render `camera` at no more than `max_pixels` pixels (every `step`-th pixel, as `evaluate_views`),
+/// or at full size with `max_pixels = 0`. `env`: another environment (normalised frame) to
+/// relight with; None = the learned one with the learned indirect light.
+pub fn render_view(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, model: &Stage2Model, camera: &Camera, max_pixels: usize, env: Option<&[Sg<f64>]>) -> Result<RenderedView, BackendError> {
+    let step = if max_pixels == 0 { 1 } else { (((camera.width * camera.height) as f64 / max_pixels as f64).sqrt().ceil() as usize).max(1) };
+    let mut out = RenderedView { width: camera.width, height: camera.height, ..Default::default() };
+    let mut rays = Rays::default();
+    for y in (0..camera.height).step_by(step) {
+        for x in (0..camera.width).step_by(step) {
+            let (o, d) = camera.ray(x as f64 + 0.5, y as f64 + 0.5);
+            rays.origins.push(o.as_vec3().to_array());
+            rays.dirs.push(d.as_vec3().to_array());
+            out.pixel_index.push(y * camera.width + x);
+        }
+    }
+    let n = rays.len();
+    out.hit = vec![false; n];
+    out.rgb = vec![[0.0; 3]; n];
+    out.albedo = vec![[0.0; 3]; n];
+    out.roughness = vec![0.0; n];
+    for start in (0..n).step_by(8192) {
+        let end = (start + 8192).min(n);
+        let r = Rays { origins: rays.origins[start..end].to_vec(), dirs: rays.dirs[start..end].to_vec() };
+        let f = |p: &[f32]| sdf.sdf(backend, p);
+        let tr = trace(&f, &r, tc)?;
+        let idx: Vec<usize> = (0..r.len()).filter(|&i| tr.hit[i]).collect();
+        let mut c = SurfaceCache { x: idx.iter().map(|&i| tr.points[i]).collect(), v: idx.iter().map(|&i| r.dirs[i].map(|v| -v)).collect(), ..Default::default() };
+        c.target = vec![[0.0; 3]; c.x.len()];
+        c.n = super::stage2::normals_at(backend, sdf, &c.x)?;
+        for i in 0..c.x.len() {
+            let d = c.n[i][0] * c.v[i][0] + c.n[i][1] * c.v[i][1] + c.n[i][2] * c.v[i][2];
+            if d < 0.0 {
+                c.n[i] = c.n[i].map(|v| -v);
+            }
+        }
+        let (albedo, rough) = model.material(backend, &c.x)?;
+        let rgb = match env {
+            None => {
+                let cfg = &model.cfg;
+                c.refresh(backend, sdf, cfg, &model.axes())?;
+                let all: Vec<usize> = (0..c.len()).collect();
+                super::stage2::render_points(backend, model, &c.batch(&all, cfg.lobes))?
+            }
+            Some(lobes) => relight_points(backend, sdf, model, &model.cfg, &c, &albedo, &rough, lobes)?,
+        };
+        for (k, &i) in idx.iter().enumerate() {
+            let g = start + i;
+            out.hit[g] = true;
+            out.rgb[g] = rgb[k];
+            out.albedo[g] = albedo[k];
+            out.roughness[g] = rough[k];
+        }
+    }
+    Ok(out)
+}
+
+/// Shade points under another environment: direct light from its lobes; a lobe blocked by the
+/// object is replaced by one-bounce light, the radiance the hit point x' (its learned material,
+/// lit by the same environment, unoccluded) sends back toward x, spread over the lobe's extent.
+#[allow(clippy::too_many_arguments)]
+fn relight_points(backend: &Backend, sdf: &Stage1Model, model: &Stage2Model, cfg: &Stage2Config, c: &SurfaceCache, albedo: &[[f32; 3]], rough: &[f32], lobes: &[Sg<f64>]) -> Result<Vec<[f32; 3]>, BackendError> {
+    let k = lobes.len();
+    let mut blocked: Vec<Vec<(usize, [f32; 3])>> = vec![Vec::new(); c.len()];
+    let (mut hx, mut hn, mut owner) = (Vec::new(), Vec::new(), Vec::new());
+    for (j, l) in lobes.iter().enumerate() {
+        let a = super::stage2::unit_f32(l.axis);
+        let idx: Vec<usize> = (0..c.len()).filter(|&i| c.n[i][0] * a[0] + c.n[i][1] * a[1] + c.n[i][2] * a[2] > 0.0).collect();
+        let rays = Rays { origins: idx.iter().map(|&i| c.x[i]).collect(), dirs: vec![a; idx.len()] };
+        let f = |p: &[f32]| sdf.sdf(backend, p);
+        let (hit, t) = trace_secondary(&f, &rays, cfg.secondary_offset, cfg.secondary_steps, cfg.secondary_threshold, 1.0)?;
+        for (q, &i) in idx.iter().enumerate() {
+            if hit[q] {
+                hx.push(rays.at(q, t[q]));
+                owner.push((i, j));
+            }
+        }
+    }
+    if !hx.is_empty() {
+        hn = super::stage2::normals_at(backend, sdf, &hx)?;
+    }
+    let (ha, hr) = model.material(backend, &hx)?;
+    let bounce: Vec<[f32; 3]> = (0..hx.len())
+        .into_par_iter()
+        .map(|h| {
+            let (i, j) = owner[h];
+            let _ = i;
+            let v = super::stage2::unit_f32(lobes[j].axis).map(|x| -x as f64);
+            let (sp, df) = shade_f64(ha[h].map(f64::from), hr[h] as f64, hn[h].map(f64::from), v, lobes);
+            [0, 1, 2].map(|ch| (sp[ch].max(0.0) + df[ch].max(0.0)) as f32)
+        })
+        .collect();
+    for (h, &(i, j)) in owner.iter().enumerate() {
+        blocked[i].push((j, bounce[h]));
+    }
+    let _ = k;
+    Ok((0..c.len())
+        .into_par_iter()
+        .map(|i| {
+            let mut li = lobes.to_vec();
+            for &(j, l) in &blocked[i] {
+                li[j] = Sg { axis: lobes[j].axis, lambda: lobes[j].lambda, mu: l.map(f64::from) };
+            }
+            let (sp, df) = shade_f64(albedo[i].map(f64::from), rough[i] as f64, c.n[i].map(f64::from), c.v[i].map(f64::from), &li);
+            [0, 1, 2].map(|ch| (sp[ch].max(0.0) + df[ch].max(0.0)) as f32)
+        })
+        .collect())
+}
+
+// ---- export ---------------------------------------------------------------------------------
+
+/// The stage-2 material field as the asset back end's material (asset frame in, de-lit albedo and
+/// roughness out).
+pub struct LearnedMaterial<'a> {
+    pub model: &'a Stage2Model,
+    pub rotation: DMat3,
+    pub feature: f32,
+}
+
+impl MaterialField for LearnedMaterial<'_> {
+    fn name(&self) -> String {
+        format!("learned material (stage 2 autoencoder, {} decoder)", match self.model.cfg.decoder { DecoderMode::Separate => "separate", DecoderMode::Shared => "shared" })
+    }
+    fn eval(&self, backend: &Backend, points: &[[f32; 3]], _normals: &[[f32; 3]]) -> Result<MaterialSamples, BackendError> {
+        let rt = self.rotation.transpose();
+        let x: Vec<[f32; 3]> = points.iter().map(|&q| (rt * glam::DVec3::from(q.map(f64::from))).as_vec3().to_array()).collect();
+        let (albedo, roughness) = self.model.material(backend, &x)?;
+        Ok(MaterialSamples { albedo, roughness })
+    }
+    fn feature_size(&self) -> Option<f32> {
+        Some(self.feature)
+    }
+}
+
+/// Export a stage-1 geometry with a stage-2 material and environment.
+pub fn export_stage2(backend: &Backend, s1: &Trainer, s2: &Stage2Trainer, rs: &RunScene, asset: &AssetArgs, default_name: &str, ctx: &Context) -> anyhow::Result<ExportReport> {
+    let rotation = DMat3::from_cols_array(&rs.rotation);
+    let cfg = &s1.cfg;
+    let sdf = TrainedSdf::new(backend, &s1.model, rotation).context("meshing the trained SDF")?;
+    let material = LearnedMaterial { model: &s2.model, rotation, feature: 16.0 * cfg.sizes.pixel_footprint };
+    let ecfg = ExportConfig {
+        name: asset.name.clone().unwrap_or_else(|| default_name.to_string()),
+        mesh: MeshConfig { resolution: asset.resolution.unwrap_or(cfg.sizes.mesh_resolution), error_bound: asset.error_bound, ..Default::default() },
+        texture: asset.texture,
+        metres_per_unit: (asset.metres_per_unit / rs.scale) as f32,
+        usdz: asset.usdz,
+        provenance: serde_json::json!({
+            "method": "stage 1 (trained SDF) + stage 2 (SG environment, material autoencoder, indirect light)",
+            "scene": rs.scene.display().to_string(),
+            "format": rs.format,
+            "preset": cfg.preset,
+            "indirect": s2.model.cfg.indirect,
+            "lobes": s2.model.cfg.lobes,
+            "steps": { "geometry": s1.step, "material": s2.step },
+        }),
+        ..Default::default()
+    };
+    let env = s2.model.env_sgs(rotation);
+    let t = Instant::now();
+    let report = crate::export::export_asset(backend, &sdf, &material, Some(&env), &ecfg, &asset.out)?;
+    ctx.say(format!(
+        "export: {} triangles (error bound {:.4} normalised units, watertight {}), {} UV charts, {}² albedo/roughness textures from the material field, learned environment ({} lobes), files in {} [{:.2} s]",
+        report.mesh.triangles,
+        report.mesh.error_bound,
+        report.mesh.watertight,
+        report.uv_charts,
+        report.texture_size,
+        env.lobes.len(),
+        asset.out.display(),
+        t.elapsed().as_secs_f64()
+    ));
+    Ok(report)
+}

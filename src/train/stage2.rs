@@ -1,0 +1,1151 @@
+//! Stage 2: light, material and physics-based indirect illumination on a stage-1 geometry.
+//!
+//! The model (all in the normalised frame of stage 1):
+//! - **environment**: K SG lobes `G(ω; ξ, λ, μ)`, stored as `[ξ raw (3), ln λ, μ raw (3)]` per lobe
+//!   (`ξ` normalised where used, `μ = |raw|`). Init: Fibonacci axes, `λ = 10 + |20·N(0,1)|`, white
+//!   amplitudes scaled so the total energy `Σ μ·2π/λ·(1 − e^{−2λ})` is `0.8·2π` (the paper's);
+//! - **material autoencoder**: `PE10(x) → widths (LeakyReLU 0.2) → latent z` and decoders
+//!   `z → albedo (3), roughness (1)`, sigmoid outputs: two decoders (`separate`, synthetic data) or
+//!   one that shares its layers (`shared`, real captures). Latent smoothness: L1 between the
+//!   material decoded from `z` and from `z + N(0, σ²)`; KL sparsity of `mean σ(z)` toward ρ;
+//! - **indirect light** (`--indirect ours`): from each surface point x a ray toward every lobe
+//!   axis ξ_k above its horizon is traced (the stage-1 SDF, 10 sphere-tracing steps from
+//!   t = 0.01). Where it hits x' (normal n'), `F_ind(PE10(x'), PE4(n'))` → K sigmoid weights,
+//!   L1-normalised, mix the environment lobes into the lobe that replaces lobe k:
+//!   axis ξ_k, `λ = Σ w_j λ_j`, `μ = Σ w_j μ_j`. Baselines on the same data: `none` (no
+//!   occlusion at all, PhySG-like) and `uniform` (`w_j = 1/K`, NeRV-like).
+//!
+//! Shading is [`crate::sg::shade`]'s closed form (F0 = 0.02), output sRGB-encoded and compared
+//! with the photo by L1 (as stage 1 and PhySG). Geometry is frozen (the public code): primary
+//! surface points, their normals and every secondary hit are traced **once** into a
+//! [`SurfaceCache`]; a lobe whose axis has moved by more than `retrace_degrees` since it was traced
+//! is re-traced for all cached points (lazily, per lobe).
+//!
+//! The backward is exact and first-order: forward-mode duals ([`crate::sg::shade::Dual`]) per
+//! lobe through the shading, reverse through the mixture, the weight normalisation and the MLPs
+//! (`Backend::mlp_backward`). It is checked against central differences in the tests.
+
+use std::path::Path;
+
+use rand::Rng;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::stage1::{Model as Stage1Model, Preset, TrainData};
+use crate::backend::{Backend, BackendError};
+use crate::nn::adam::{AdamConfig, AdamItem, AdamState};
+use crate::nn::encoding::{encoding_forward_cpu, EncodingConfig};
+use crate::nn::mlp::{Activation, Init, Mlp, MlpConfig};
+use crate::nn::params::ParamStore;
+use crate::render::{trace, trace_secondary, Rays, TraceConfig};
+use crate::sg::env::{EnvSgs, SgLobe};
+use crate::sg::shade::{lobe_contribution, Dual, Sg, Surface, LAMBDA_MIN};
+use crate::util::DataError;
+
+/// How light blocked by the object itself is modelled.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum IndirectMode {
+    /// The paper's: blocked lobes are replaced by F_ind's mixture of the environment at the hit.
+    Ours,
+    /// No occlusion, no indirect light (PhySG-like).
+    None,
+    /// Blocked lobes replaced by the uniform mixture of the environment (NeRV-like).
+    Uniform,
+}
+
+impl IndirectMode {
+    pub fn name(self) -> &'static str {
+        match self {
+            IndirectMode::Ours => "ours",
+            IndirectMode::None => "none",
+            IndirectMode::Uniform => "uniform",
+        }
+    }
+}
+
+/// Material decoder layout (supplementary §5.2).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DecoderMode {
+    /// One decoder for albedo and one for roughness (synthetic data).
+    Separate,
+    /// One decoder with both outputs (real captures: roughness cannot saturate alone).
+    Shared,
+}
+
+/// Stage-2 configuration: sizes, weights, learning rates.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct Stage2Config {
+    pub preset: Preset,
+    pub lobes: usize,
+    pub indirect: IndirectMode,
+    pub decoder: DecoderMode,
+    pub pos_freqs: u32,
+    pub dir_freqs: u32,
+    pub material_widths: Vec<usize>,
+    pub latent_dim: usize,
+    pub decoder_widths: Vec<usize>,
+    pub indirect_widths: Vec<usize>,
+    /// Surface points cached from the training pixels.
+    pub points: usize,
+    /// Points per iteration.
+    pub batch: usize,
+    pub iterations: u64,
+    pub lr_material: f32,
+    pub lr_light: f32,
+    pub lr_indirect: f32,
+    /// The learning rates decay exponentially to this factor at the last iteration.
+    pub lr_final_factor: f32,
+    pub smooth_weight: f32,
+    pub smooth_sigma: f32,
+    pub kl_weight: f32,
+    pub kl_rho: f32,
+    pub secondary_offset: f32,
+    pub secondary_steps: usize,
+    pub secondary_threshold: f32,
+    /// Re-trace a lobe's secondary rays once its axis has moved this far (degrees).
+    pub retrace_degrees: f32,
+    pub seed: u64,
+    pub checkpoint_every: u64,
+}
+
+impl Stage2Config {
+    /// The preset's configuration. `foreground_pixels`: masked training pixels (the cache never
+    /// holds more points than there are pixels to explain).
+    pub fn new(preset: Preset, foreground_pixels: usize) -> Self {
+        let (lobes, widths, ind, points, batch, iterations) = match preset {
+            Preset::Fast => (32, vec![128; 3], vec![128; 2], 32_768, 1024, 600),
+            Preset::Paper => (128, vec![256; 3], vec![512; 4], 65_536, 2048, 3000),
+        };
+        Self {
+            preset,
+            lobes,
+            indirect: IndirectMode::Ours,
+            decoder: DecoderMode::Separate,
+            pos_freqs: 10,
+            dir_freqs: 4,
+            material_widths: widths,
+            latent_dim: 32,
+            decoder_widths: vec![64],
+            indirect_widths: ind,
+            points: points.min(foreground_pixels.max(1)),
+            batch,
+            iterations,
+            lr_material: 5e-3,
+            lr_light: 1e-2,
+            lr_indirect: 2e-3,
+            lr_final_factor: 0.1,
+            smooth_weight: 0.1,
+            smooth_sigma: 0.01,
+            kl_weight: 0.01,
+            kl_rho: 0.05,
+            secondary_offset: 0.01,
+            secondary_steps: 10,
+            secondary_threshold: 5e-4,
+            retrace_degrees: 3.0,
+            seed: 0,
+            checkpoint_every: 100,
+        }
+    }
+
+    pub fn validate(&self) -> Result<(), BackendError> {
+        let bad = |m: &str| Err(BackendError::Config(format!("stage 2: {m}")));
+        if self.lobes == 0 || self.lobes > 1024 {
+            return bad("lobes must be in 1..=1024");
+        }
+        if self.batch == 0 || self.points == 0 || self.latent_dim == 0 {
+            return bad("batch, points and latent size must be > 0");
+        }
+        let lrs = [self.lr_material, self.lr_light, self.lr_indirect, self.lr_final_factor];
+        if lrs.iter().any(|v| !(v.is_finite() && *v >= 0.0)) {
+            return bad("learning rates must be finite and >= 0");
+        }
+        if !(self.kl_rho > 0.0 && self.kl_rho < 1.0) {
+            return bad("kl_rho must be in (0, 1)");
+        }
+        Ok(())
+    }
+
+    pub fn lr_factor(&self, step: u64) -> f32 {
+        (self.lr_final_factor as f64).powf(step as f64 / self.iterations.max(1) as f64) as f32
+    }
+
+    fn pos_encoding(&self) -> EncodingConfig {
+        EncodingConfig::frequency(self.pos_freqs)
+    }
+    fn dir_encoding(&self) -> EncodingConfig {
+        EncodingConfig::frequency(self.dir_freqs)
+    }
+
+    pub fn encoder_mlp(&self) -> MlpConfig {
+        MlpConfig {
+            in_dim: self.pos_encoding().out_dim(3),
+            widths: self.material_widths.clone(),
+            out_dim: self.latent_dim,
+            activation: Activation::LeakyRelu(0.2),
+            output_activation: Activation::None,
+            skip_layers: vec![],
+            weight_norm: false,
+        }
+    }
+
+    /// The decoders and the first material channel each writes (albedo 0..3, roughness 3).
+    pub fn decoder_mlps(&self) -> Vec<(MlpConfig, usize)> {
+        let dec = |out: usize| MlpConfig {
+            in_dim: self.latent_dim,
+            widths: self.decoder_widths.clone(),
+            out_dim: out,
+            activation: Activation::LeakyRelu(0.2),
+            output_activation: Activation::Sigmoid,
+            skip_layers: vec![],
+            weight_norm: false,
+        };
+        match self.decoder {
+            DecoderMode::Separate => vec![(dec(3), 0), (dec(1), 3)],
+            DecoderMode::Shared => vec![(dec(4), 0)],
+        }
+    }
+
+    pub fn indirect_mlp(&self) -> MlpConfig {
+        MlpConfig {
+            in_dim: self.pos_encoding().out_dim(3) + self.dir_encoding().out_dim(3),
+            widths: self.indirect_widths.clone(),
+            out_dim: self.lobes,
+            activation: Activation::Relu,
+            output_activation: Activation::Sigmoid,
+            skip_layers: vec![],
+            weight_norm: false,
+        }
+    }
+}
+
+/// Apply `KEY=VALUE` overrides (any field of [`Stage2Config`], JSON values).
+pub fn apply_overrides(cfg: Stage2Config, overrides: &[String]) -> Result<Stage2Config, BackendError> {
+    let mut v = serde_json::to_value(&cfg).map_err(|e| BackendError::Config(e.to_string()))?;
+    for o in overrides {
+        let (k, val) = o.split_once('=').ok_or_else(|| BackendError::Config(format!("override {o:?} is not KEY=VALUE")))?;
+        let obj = v.as_object_mut().ok_or_else(|| BackendError::Config("config is not an object".into()))?;
+        if !obj.contains_key(k) {
+            return Err(BackendError::Config(format!("stage 2 has no setting {k:?}")));
+        }
+        let parsed = serde_json::from_str(val).unwrap_or(serde_json::Value::String(val.to_string()));
+        obj.insert(k.to_string(), parsed);
+    }
+    let c: Stage2Config = serde_json::from_value(v).map_err(|e| BackendError::Config(format!("override: {e}")))?;
+    c.validate()?;
+    Ok(c)
+}
+
+/// `n` unit vectors on a Fibonacci sphere.
+pub fn fibonacci_sphere(n: usize) -> Vec<[f32; 3]> {
+    let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+    (0..n)
+        .map(|i| {
+            let y = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
+            let r = (1.0 - y * y).max(0.0).sqrt();
+            let th = golden * i as f64;
+            [(th.cos() * r) as f32, y as f32, (th.sin() * r) as f32]
+        })
+        .collect()
+}
+
+/// A standard normal draw (Box–Muller).
+pub fn normal(rng: &mut impl Rng) -> f64 {
+    let u1: f64 = rng.random_range(1e-12..1.0);
+    let u2: f64 = rng.random_range(0.0..1.0);
+    (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+}
+
+/// Parameters per lobe in the light tensor.
+pub const LIGHT_STRIDE: usize = 7;
+
+/// The initial light: Fibonacci axes, λ = 10 + |20·N(0,1)|, white amplitudes with total energy 0.8·2π.
+pub fn init_light(k: usize, seed: u64) -> Vec<f32> {
+    let mut rng = crate::util::rng(seed ^ 0x5EED_0002);
+    let axes = fibonacci_sphere(k);
+    let lambdas: Vec<f64> = (0..k).map(|_| 10.0 + (20.0 * normal(&mut rng)).abs()).collect();
+    let energy: f64 = lambdas.iter().map(|&l| 2.0 * std::f64::consts::PI / l * (1.0 - (-2.0 * l).exp())).sum();
+    let mu = 0.8 * 2.0 * std::f64::consts::PI / energy;
+    let mut out = Vec::with_capacity(k * LIGHT_STRIDE);
+    for (a, l) in axes.iter().zip(&lambdas) {
+        out.extend_from_slice(a);
+        out.push(l.ln() as f32);
+        out.extend([mu as f32; 3]);
+    }
+    out
+}
+
+/// The effective lobes of a light tensor (axis as stored: shading normalises it).
+pub fn light_lobes(light: &[f32]) -> Vec<Sg<f64>> {
+    light
+        .chunks_exact(LIGHT_STRIDE)
+        .map(|l| Sg {
+            axis: [l[0] as f64, l[1] as f64, l[2] as f64],
+            lambda: (l[3] as f64).exp().max(LAMBDA_MIN),
+            mu: [(l[4] as f64).abs(), (l[5] as f64).abs(), (l[6] as f64).abs()],
+        })
+        .collect()
+}
+
+fn unit(a: [f64; 3]) -> [f64; 3] {
+    let l = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt().max(1e-12);
+    [a[0] / l, a[1] / l, a[2] / l]
+}
+
+/// The unit vector of `a`, in f32.
+pub fn unit_f32(a: [f64; 3]) -> [f32; 3] {
+    unit(a).map(|v| v as f32)
+}
+
+fn dot3(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn f64x3(a: [f32; 3]) -> [f64; 3] {
+    a.map(f64::from)
+}
+
+/// sRGB encoding with its derivative (0 outside (0, 1), where the encoding clamps).
+fn srgb_with_derivative(x: f64) -> (f64, f64) {
+    if x <= 0.0 {
+        (0.0, 0.0)
+    } else if x >= 1.0 {
+        (1.0, 0.0)
+    } else if x <= 0.003_130_8 {
+        (12.92 * x, 12.92)
+    } else {
+        (1.055 * x.powf(1.0 / 2.4) - 0.055, 1.055 / 2.4 * x.powf(1.0 / 2.4 - 1.0))
+    }
+}
+
+/// The stage-2 networks and light, parameters on the host.
+#[derive(Clone, Debug)]
+pub struct Stage2Model {
+    pub cfg: Stage2Config,
+    pub encoder: Mlp,
+    pub decoders: Vec<(Mlp, usize)>,
+    pub indirect: Mlp,
+    pub enc_params: Vec<f32>,
+    pub dec_params: Vec<Vec<f32>>,
+    pub light: Vec<f32>,
+    pub ind_params: Vec<f32>,
+}
+
+impl Stage2Model {
+    pub fn new(cfg: &Stage2Config) -> Result<Self, BackendError> {
+        cfg.validate()?;
+        let encoder = Mlp::new(cfg.encoder_mlp())?;
+        let decoders: Vec<(Mlp, usize)> = cfg.decoder_mlps().into_iter().map(|(c, o)| Mlp::new(c).map(|m| (m, o))).collect::<Result<_, _>>()?;
+        let indirect = Mlp::new(cfg.indirect_mlp())?;
+        let enc_params = encoder.init(Init::Default, cfg.seed.wrapping_add(101));
+        let dec_params = decoders.iter().enumerate().map(|(i, (m, _))| m.init(Init::Default, cfg.seed.wrapping_add(202 + i as u64))).collect();
+        let ind_params = indirect.init(Init::Default, cfg.seed.wrapping_add(303));
+        let light = init_light(cfg.lobes, cfg.seed);
+        Ok(Self { cfg: cfg.clone(), encoder, decoders, indirect, enc_params, dec_params, light, ind_params })
+    }
+
+    pub fn num_params(&self) -> usize {
+        self.enc_params.len() + self.dec_params.iter().map(Vec::len).sum::<usize>() + self.light.len() + self.ind_params.len()
+    }
+
+    pub fn lobes(&self) -> Vec<Sg<f64>> {
+        light_lobes(&self.light)
+    }
+
+    /// Unit lobe axes (normalised frame).
+    pub fn axes(&self) -> Vec<[f32; 3]> {
+        self.light.chunks_exact(LIGHT_STRIDE).map(|l| unit(f64x3([l[0], l[1], l[2]])).map(|v| v as f32)).collect()
+    }
+
+    /// The environment in the asset frame (`rotation`: normalised → asset).
+    pub fn env_sgs(&self, rotation: glam::DMat3) -> EnvSgs {
+        EnvSgs {
+            lobes: self
+                .lobes()
+                .iter()
+                .map(|l| {
+                    let a = rotation * glam::DVec3::from(unit(l.axis));
+                    SgLobe { axis: a.as_vec3().to_array(), sharpness: l.lambda as f32, amplitude: l.mu.map(|v| v as f32) }
+                })
+                .collect(),
+        }
+    }
+
+    fn encode_pos(&self, x: &[[f32; 3]]) -> Vec<f32> {
+        encoding_forward_cpu(&self.cfg.pos_encoding(), &[], bytemuck::cast_slice(x), 3)
+    }
+
+    /// Albedo (linear, [0, 1]) and roughness at points: forward only, in chunks.
+    pub fn material(&self, backend: &Backend, x: &[[f32; 3]]) -> Result<(Vec<[f32; 3]>, Vec<f32>), BackendError> {
+        let mut albedo = Vec::with_capacity(x.len());
+        let mut rough = Vec::with_capacity(x.len());
+        for c in x.chunks(1 << 14) {
+            let enc = self.encode_pos(c);
+            let z = backend.mlp_forward(&self.encoder, &backend.upload(&self.enc_params), &backend.from_vec(enc), false)?;
+            let mut mat = vec![0.0f32; c.len() * 4];
+            for ((m, o), p) in self.decoders.iter().zip(&self.dec_params) {
+                let out = backend.to_vec(&backend.mlp_forward(m, &backend.upload(p), &z.output, false)?.output)?;
+                let od = m.out_dim();
+                for i in 0..c.len() {
+                    mat[4 * i + o..4 * i + o + od].copy_from_slice(&out[od * i..od * (i + 1)]);
+                }
+            }
+            for m in mat.chunks_exact(4) {
+                albedo.push([m[0], m[1], m[2]]);
+                rough.push(m[3]);
+            }
+        }
+        Ok((albedo, rough))
+    }
+
+    fn indirect_input(&self, hx: &[[f32; 3]], hn: &[[f32; 3]]) -> Vec<f32> {
+        let pe = self.encode_pos(hx);
+        let de = encoding_forward_cpu(&self.cfg.dir_encoding(), &[], bytemuck::cast_slice(hn), 3);
+        let (pd, dd) = (pe.len() / hx.len().max(1), de.len() / hn.len().max(1));
+        let mut input = Vec::with_capacity(hx.len() * (pd + dd));
+        for i in 0..hx.len() {
+            input.extend_from_slice(&pe[pd * i..pd * (i + 1)]);
+            input.extend_from_slice(&de[dd * i..dd * (i + 1)]);
+        }
+        input
+    }
+
+    /// F_ind's normalised weights `[n, K]` at hits: forward only.
+    pub fn indirect_weights(&self, backend: &Backend, hx: &[[f32; 3]], hn: &[[f32; 3]]) -> Result<Vec<f32>, BackendError> {
+        let k = self.cfg.lobes;
+        match self.cfg.indirect {
+            IndirectMode::Ours => {
+                let mut out = Vec::with_capacity(hx.len() * k);
+                for (cx, cn) in hx.chunks(1 << 13).zip(hn.chunks(1 << 13)) {
+                    let inp = self.indirect_input(cx, cn);
+                    let s = backend.to_vec(&backend.mlp_forward(&self.indirect, &backend.upload(&self.ind_params), &backend.from_vec(inp), false)?.output)?;
+                    for row in s.chunks_exact(k) {
+                        let sum: f32 = row.iter().sum::<f32>().max(1e-12);
+                        out.extend(row.iter().map(|v| v / sum));
+                    }
+                }
+                Ok(out)
+            }
+            _ => Ok(vec![1.0 / k as f32; hx.len() * k]),
+        }
+    }
+}
+
+/// The lobe replacing lobe `k` at a blocked direction: axis ξ_k, `λ = Σ w_j λ_j`, `μ = Σ w_j μ_j`.
+pub fn mix_lobe(lobes: &[Sg<f64>], k: usize, w: &[f32]) -> Sg<f64> {
+    let mut lam = 0.0;
+    let mut mu = [0.0; 3];
+    for (j, l) in lobes.iter().enumerate() {
+        let wj = w[j] as f64;
+        lam += wj * l.lambda;
+        for c in 0..3 {
+            mu[c] += wj * l.mu[c];
+        }
+    }
+    Sg { axis: lobes[k].axis, lambda: lam.max(LAMBDA_MIN), mu }
+}
+
+/// Outgoing radiance (linear) at one point: the clamped sums of [`lobe_contribution`].
+pub fn shade_f64(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>]) -> ([f64; 3], [f64; 3]) {
+    let s = Surface { albedo, roughness: rough, normal: n, view: v };
+    let mut spec = [0.0; 3];
+    let mut diff = [0.0; 3];
+    for l in lobes {
+        let (sp, df) = lobe_contribution(&s, l);
+        for c in 0..3 {
+            spec[c] += sp[c];
+            diff[c] += df[c];
+        }
+    }
+    (spec, diff)
+}
+
+/// Gradient of `Σ_c d_out_c · L_c` for one point: `(d albedo, d roughness, per lobe [d axis (3),
+/// d λ, d μ (3)])`, given the forward's clamp masks (`spec`/`diff` sums from [`shade_f64`]).
+pub fn shade_grad(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>], spec: [f64; 3], diff: [f64; 3], d_out: [f64; 3]) -> ([f64; 3], f64, Vec<[f64; 7]>) {
+    let ws = [0, 1, 2].map(|c| if spec[c] > 0.0 { d_out[c] } else { 0.0 });
+    let wd = [0, 1, 2].map(|c| if diff[c] > 0.0 { d_out[c] } else { 0.0 });
+    let mut da = [0.0; 3];
+    let mut dr = 0.0;
+    let mut dl = Vec::with_capacity(lobes.len());
+    type D = Dual<11>;
+    let cst = |x: f64| D { v: x, d: [0.0; 11] };
+    let s = Surface {
+        albedo: [D::var(albedo[0], 0), D::var(albedo[1], 1), D::var(albedo[2], 2)],
+        roughness: D::var(rough, 3),
+        normal: n.map(cst),
+        view: v.map(cst),
+    };
+    for l in lobes {
+        let g = Sg {
+            axis: [D::var(l.axis[0], 4), D::var(l.axis[1], 5), D::var(l.axis[2], 6)],
+            lambda: D::var(l.lambda, 7),
+            mu: [D::var(l.mu[0], 8), D::var(l.mu[1], 9), D::var(l.mu[2], 10)],
+        };
+        let (sp, df) = lobe_contribution(&s, &g);
+        let mut d = [0.0f64; 11];
+        for c in 0..3 {
+            for (i, di) in d.iter_mut().enumerate() {
+                *di += ws[c] * sp[c].d[i] + wd[c] * df[c].d[i];
+            }
+        }
+        for c in 0..3 {
+            da[c] += d[c];
+        }
+        dr += d[3];
+        dl.push([d[4], d[5], d[6], d[7], d[8], d[9], d[10]]);
+    }
+    (da, dr, dl)
+}
+
+/// One training batch of cached surface points.
+#[derive(Clone, Debug, Default)]
+pub struct Stage2Batch {
+    pub x: Vec<[f32; 3]>,
+    pub n: Vec<[f32; 3]>,
+    /// Surface → camera, unit.
+    pub v: Vec<[f32; 3]>,
+    /// The photo, sRGB-encoded.
+    pub target: Vec<[f32; 3]>,
+    /// Per point: the blocked lobes and their hits `(k, x', n')`.
+    pub hits: Vec<Vec<(usize, [f32; 3], [f32; 3])>>,
+}
+
+impl Stage2Batch {
+    pub fn len(&self) -> usize {
+        self.x.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.x.is_empty()
+    }
+}
+
+/// Loss weights of one step.
+#[derive(Clone, Copy, Debug)]
+pub struct Stage2Weights {
+    pub smooth: f32,
+    pub sigma: f32,
+    pub kl: f32,
+    pub rho: f32,
+}
+
+/// Loss parts and figures of one step.
+#[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
+pub struct Stage2Stats {
+    pub step: u64,
+    pub loss: f64,
+    pub rgb: f64,
+    pub smooth: f64,
+    pub kl: f64,
+    pub psnr: f64,
+    /// Blocked (point, lobe) pairs in the batch.
+    pub blocked: usize,
+    pub applied: bool,
+    pub grad_norm: f64,
+}
+
+/// Gradients of one step.
+#[derive(Clone, Debug, Default)]
+pub struct Stage2Grads {
+    pub stats: Stage2Stats,
+    pub d_enc: Vec<f32>,
+    pub d_dec: Vec<Vec<f32>>,
+    pub d_light: Vec<f32>,
+    pub d_ind: Vec<f32>,
+    /// The batch's render (linear RGB), for figures.
+    pub rgb: Vec<[f32; 3]>,
+}
+
+/// Loss and exact gradients of one batch (see the module docs). `noise_seed` draws the latent
+/// perturbation of the smoothness term.
+pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch, w: &Stage2Weights, noise_seed: u64) -> Result<Stage2Grads, BackendError> {
+    let b = batch.len();
+    let k = model.cfg.lobes;
+    let ld = model.cfg.latent_dim;
+    if b == 0 {
+        return Err(BackendError::Shape("stage 2: empty batch".into()));
+    }
+    // Material: encoder → latent → decoders, on z and on z + ε.
+    let enc_p = backend.upload(&model.enc_params);
+    let zf = backend.mlp_forward(&model.encoder, &enc_p, &backend.from_vec(model.encode_pos(&batch.x)), true)?;
+    let z = backend.to_vec(&zf.output)?;
+    let mut rng = crate::util::rng(noise_seed);
+    let zp: Vec<f32> = z.iter().map(|&v| v + w.sigma * normal(&mut rng) as f32).collect();
+    let zp_t = backend.from_vec(zp);
+    let mut mat = vec![0.0f32; b * 4];
+    let mut matp = vec![0.0f32; b * 4];
+    let mut dec_fwd = Vec::new();
+    for ((m, o), p) in model.decoders.iter().zip(&model.dec_params) {
+        let pt = backend.upload(p);
+        let f0 = backend.mlp_forward(m, &pt, &zf.output, true)?;
+        let f1 = backend.mlp_forward(m, &pt, &zp_t, true)?;
+        let (o0, o1) = (backend.to_vec(&f0.output)?, backend.to_vec(&f1.output)?);
+        let od = m.out_dim();
+        for i in 0..b {
+            mat[4 * i + o..4 * i + o + od].copy_from_slice(&o0[od * i..od * (i + 1)]);
+            matp[4 * i + o..4 * i + o + od].copy_from_slice(&o1[od * i..od * (i + 1)]);
+        }
+        dec_fwd.push((pt, f0, f1));
+    }
+
+    // Indirect slots: every (point, blocked lobe) of the batch.
+    let lobes = model.lobes();
+    let mode = model.cfg.indirect;
+    let mut slot_of: Vec<Vec<(usize, usize)>> = vec![Vec::new(); b];
+    let (mut hx, mut hn) = (Vec::new(), Vec::new());
+    if mode != IndirectMode::None {
+        for (i, hs) in batch.hits.iter().enumerate() {
+            for &(kk, x2, n2) in hs {
+                slot_of[i].push((kk, hx.len()));
+                hx.push(x2);
+                hn.push(n2);
+            }
+        }
+    }
+    let slots = hx.len();
+    let ind_p = backend.upload(&model.ind_params);
+    let (ind_fwd, sig) = if mode == IndirectMode::Ours && slots > 0 {
+        let f = backend.mlp_forward(&model.indirect, &ind_p, &backend.from_vec(model.indirect_input(&hx, &hn)), true)?;
+        let s = backend.to_vec(&f.output)?;
+        (Some(f), s)
+    } else {
+        (None, vec![1.0f32; slots * k])
+    };
+    let sums: Vec<f64> = sig.chunks_exact(k).map(|r| r.iter().map(|&v| v as f64).sum::<f64>().max(1e-12)).collect();
+    let weights: Vec<f32> = sig.chunks_exact(k).zip(&sums).flat_map(|(r, &s)| r.iter().map(move |&v| (v as f64 / s) as f32)).collect();
+
+    // Shading, loss and its gradient per point.
+    struct PointOut {
+        rgb: [f64; 3],
+        loss: f64,
+        se: f64,
+        da: [f64; 3],
+        dr: f64,
+        dl: Vec<[f64; 7]>,
+    }
+    let inv3b = 1.0 / (3.0 * b as f64);
+    let per: Vec<PointOut> = (0..b)
+        .into_par_iter()
+        .map(|i| {
+            let mut li = lobes.clone();
+            for &(kk, s) in &slot_of[i] {
+                li[kk] = mix_lobe(&lobes, kk, &weights[s * k..(s + 1) * k]);
+            }
+            let a = [mat[4 * i] as f64, mat[4 * i + 1] as f64, mat[4 * i + 2] as f64];
+            let r = mat[4 * i + 3] as f64;
+            let (n, v) = (f64x3(batch.n[i]), f64x3(batch.v[i]));
+            let (spec, diff) = shade_f64(a, r, n, v, &li);
+            let mut rgb = [0.0; 3];
+            let mut d_out = [0.0; 3];
+            let (mut loss, mut se) = (0.0, 0.0);
+            for c in 0..3 {
+                rgb[c] = spec[c].max(0.0) + diff[c].max(0.0);
+                let (enc, de) = srgb_with_derivative(rgb[c]);
+                let e = enc - batch.target[i][c] as f64;
+                loss += e.abs() * inv3b;
+                se += e * e;
+                d_out[c] = e.signum() * inv3b * de;
+            }
+            let (da, dr, dl) = shade_grad(a, r, n, v, &li, spec, diff, d_out);
+            PointOut { rgb, loss, se, da, dr, dl }
+        })
+        .collect();
+
+    // Light and mixture gradients.
+    let mut d_light = vec![0.0f64; k * LIGHT_STRIDE];
+    let mut d_sig = vec![0.0f32; slots * k];
+    let mut loss_rgb = 0.0;
+    let mut se = 0.0;
+    let mut d_mat = vec![0.0f32; b * 4];
+    for (i, p) in per.iter().enumerate() {
+        loss_rgb += p.loss;
+        se += p.se;
+        for c in 0..3 {
+            d_mat[4 * i + c] = p.da[c] as f32;
+        }
+        d_mat[4 * i + 3] = p.dr as f32;
+        let mut replaced = vec![usize::MAX; k];
+        for &(kk, s) in &slot_of[i] {
+            replaced[kk] = s;
+        }
+        for (kk, g) in p.dl.iter().enumerate() {
+            // The axis is lobe k's own parameter in both cases.
+            for a in 0..3 {
+                d_light[kk * LIGHT_STRIDE + a] += g[a];
+            }
+            let s = replaced[kk];
+            if s == usize::MAX {
+                d_light[kk * LIGHT_STRIDE + 3] += g[3];
+                for c in 0..3 {
+                    d_light[kk * LIGHT_STRIDE + 4 + c] += g[4 + c];
+                }
+            } else {
+                let wrow = &weights[s * k..(s + 1) * k];
+                let mut dw = vec![0.0f64; k];
+                for (j, l) in lobes.iter().enumerate() {
+                    let wj = wrow[j] as f64;
+                    d_light[j * LIGHT_STRIDE + 3] += wj * g[3];
+                    for c in 0..3 {
+                        d_light[j * LIGHT_STRIDE + 4 + c] += wj * g[4 + c];
+                    }
+                    dw[j] = g[3] * l.lambda + g[4] * l.mu[0] + g[5] * l.mu[1] + g[6] * l.mu[2];
+                }
+                if mode == IndirectMode::Ours {
+                    let wdw: f64 = (0..k).map(|j| wrow[j] as f64 * dw[j]).sum();
+                    for j in 0..k {
+                        d_sig[s * k + j] = ((dw[j] - wdw) / sums[s]) as f32;
+                    }
+                }
+            }
+        }
+    }
+    // Effective → stored parameters: λ = exp(raw) (floored), μ = |raw|.
+    let mut d_light_f = vec![0.0f32; k * LIGHT_STRIDE];
+    for (j, l) in lobes.iter().enumerate() {
+        let raw = &model.light[j * LIGHT_STRIDE..(j + 1) * LIGHT_STRIDE];
+        for a in 0..3 {
+            d_light_f[j * LIGHT_STRIDE + a] = d_light[j * LIGHT_STRIDE + a] as f32;
+        }
+        let lam_grad = if (raw[3] as f64).exp() > LAMBDA_MIN { d_light[j * LIGHT_STRIDE + 3] * l.lambda } else { 0.0 };
+        d_light_f[j * LIGHT_STRIDE + 3] = lam_grad as f32;
+        for c in 0..3 {
+            d_light_f[j * LIGHT_STRIDE + 4 + c] = (d_light[j * LIGHT_STRIDE + 4 + c] * (raw[4 + c] as f64).signum()) as f32;
+        }
+    }
+    let d_ind = match &ind_fwd {
+        Some(f) => backend.to_vec(&backend.mlp_backward(&model.indirect, &ind_p, f, &backend.from_vec(d_sig))?.d_params)?,
+        None => vec![0.0; model.ind_params.len()],
+    };
+
+    // Latent smoothness (L1 between the material of z and of z + ε), mean over channels.
+    let mut d_matp = vec![0.0f32; b * 4];
+    let mut smooth = 0.0f64;
+    for i in 0..b {
+        for c in 0..4 {
+            let nrm = if c < 3 { 3.0 * b as f64 } else { b as f64 };
+            let e = (matp[4 * i + c] - mat[4 * i + c]) as f64;
+            smooth += w.smooth as f64 * e.abs() / nrm;
+            let g = (w.smooth as f64 * e.signum() / nrm) as f32;
+            d_matp[4 * i + c] = g;
+            d_mat[4 * i + c] -= g;
+        }
+    }
+    // Decoders backward on both paths; latent gradients sum.
+    let mut dz = vec![0.0f32; b * ld];
+    let mut d_dec = Vec::with_capacity(model.decoders.len());
+    for ((m, o), (pt, f0, f1)) in model.decoders.iter().zip(&dec_fwd) {
+        let od = m.out_dim();
+        let pick = |src: &[f32]| -> Vec<f32> { (0..b).flat_map(|i| src[4 * i + o..4 * i + o + od].to_vec()).collect() };
+        let g0 = backend.mlp_backward(m, pt, f0, &backend.from_vec(pick(&d_mat)))?;
+        let g1 = backend.mlp_backward(m, pt, f1, &backend.from_vec(pick(&d_matp)))?;
+        let (p0, p1) = (backend.to_vec(&g0.d_params)?, backend.to_vec(&g1.d_params)?);
+        d_dec.push(p0.iter().zip(&p1).map(|(a, c)| a + c).collect::<Vec<f32>>());
+        let (x0, x1) = (backend.to_vec(&g0.d_input)?, backend.to_vec(&g1.d_input)?);
+        for i in 0..b * ld {
+            dz[i] += x0[i] + x1[i];
+        }
+    }
+    // KL sparsity of mean σ(z) toward ρ.
+    let rho = w.rho as f64;
+    let mut kl = 0.0;
+    for j in 0..ld {
+        let mean: f64 = (0..b).map(|i| 1.0 / (1.0 + (-(z[i * ld + j] as f64)).exp())).sum::<f64>() / b as f64;
+        let rh = mean.clamp(1e-6, 1.0 - 1e-6);
+        kl += (rho * (rho / rh).ln() + (1.0 - rho) * ((1.0 - rho) / (1.0 - rh)).ln()) / ld as f64;
+        let dmean = w.kl as f64 * (-rho / rh + (1.0 - rho) / (1.0 - rh)) / ld as f64;
+        for i in 0..b {
+            let s = 1.0 / (1.0 + (-(z[i * ld + j] as f64)).exp());
+            dz[i * ld + j] += (dmean * s * (1.0 - s) / b as f64) as f32;
+        }
+    }
+    let ge = backend.mlp_backward(&model.encoder, &enc_p, &zf, &backend.from_vec(dz))?;
+    let d_enc = backend.to_vec(&ge.d_params)?;
+
+    let loss = loss_rgb + smooth + w.kl as f64 * kl;
+    let stats = Stage2Stats {
+        loss,
+        rgb: loss_rgb,
+        smooth,
+        kl,
+        psnr: crate::eval::psnr_from_mse(se / (3.0 * b as f64)),
+        blocked: slots,
+        ..Default::default()
+    };
+    let rgb = per.iter().map(|p| p.rgb.map(|v| v as f32)).collect();
+    Ok(Stage2Grads { stats, d_enc, d_dec, d_light: d_light_f, d_ind, rgb })
+}
+
+// ---- the surface cache ---------------------------------------------------------------------
+
+/// Primary surface points of training pixels and their secondary hits toward every lobe,
+/// traced once on the frozen stage-1 geometry (see the module docs).
+#[derive(Clone, Debug, Default)]
+pub struct SurfaceCache {
+    pub x: Vec<[f32; 3]>,
+    pub n: Vec<[f32; 3]>,
+    pub v: Vec<[f32; 3]>,
+    pub target: Vec<[f32; 3]>,
+    /// The unit axis each lobe's secondary rays were traced along.
+    pub traced_axes: Vec<[f32; 3]>,
+    /// `[point][lobe]` → index into `lobe_hits[lobe]`, or `u32::MAX` (not blocked / below the horizon).
+    pub hit_index: Vec<u32>,
+    pub lobe_hits: Vec<Vec<([f32; 3], [f32; 3])>>,
+    /// Field evaluations spent tracing (primary, secondary, normals).
+    pub evaluations: usize,
+    /// Lobes re-traced since the cache was built.
+    pub retraced: usize,
+}
+
+/// Unit normals (numerical gradient of the stage-1 field) at points.
+pub fn normals_at(backend: &Backend, sdf: &Stage1Model, x: &[[f32; 3]]) -> Result<Vec<[f32; 3]>, BackendError> {
+    let mut out = Vec::with_capacity(x.len());
+    for c in x.chunks(1 << 14) {
+        let o = sdf.field.eval_with_gradient(backend, &sdf.sdf_params, bytemuck::cast_slice(c))?;
+        out.extend(o.gradient.chunks_exact(3).map(|g| unit([g[0] as f64, g[1] as f64, g[2] as f64]).map(|v| v as f32)));
+    }
+    Ok(out)
+}
+
+impl SurfaceCache {
+    /// Trace `n` foreground training pixels (drawn with `seed`) onto the stage-1 surface.
+    pub fn build(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, data: &TrainData, n: usize, seed: u64) -> Result<Self, BackendError> {
+        let mut rng = crate::util::rng(seed ^ 0xCAC4E);
+        let batch = data.sample(&mut rng, n, 1.0);
+        let mut c = SurfaceCache::default();
+        let f = |p: &[f32]| sdf.sdf(backend, p);
+        for start in (0..batch.rays.len()).step_by(8192) {
+            let end = (start + 8192).min(batch.rays.len());
+            let r = Rays { origins: batch.rays.origins[start..end].to_vec(), dirs: batch.rays.dirs[start..end].to_vec() };
+            let tr = trace(&f, &r, tc)?;
+            c.evaluations += tr.evaluations;
+            for i in 0..r.len() {
+                if tr.hit[i] && batch.mask[start + i] >= 0.5 {
+                    c.x.push(tr.points[i]);
+                    let d = r.dirs[i];
+                    c.v.push([-d[0], -d[1], -d[2]]);
+                    c.target.push(batch.rgb[start + i]);
+                }
+            }
+        }
+        c.n = normals_at(backend, sdf, &c.x)?;
+        c.evaluations += 6 * c.x.len();
+        // Normals facing away from the camera (noise at silhouettes) are flipped toward it.
+        for i in 0..c.x.len() {
+            if dot3(f64x3(c.n[i]), f64x3(c.v[i])) < 0.0 {
+                c.n[i] = c.n[i].map(|v| -v);
+            }
+        }
+        Ok(c)
+    }
+
+    pub fn len(&self) -> usize {
+        self.x.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.x.is_empty()
+    }
+
+    /// Trace (or re-trace) lobe `k` along `axis` for every cached point.
+    pub fn trace_lobe(&mut self, backend: &Backend, sdf: &Stage1Model, cfg: &Stage2Config, k: usize, axis: [f32; 3]) -> Result<(), BackendError> {
+        let kk = cfg.lobes;
+        if self.traced_axes.len() != kk || self.hit_index.len() != self.len() * kk {
+            self.hit_index = vec![u32::MAX; self.len() * kk];
+            self.lobe_hits = vec![Vec::new(); kk];
+            self.traced_axes = vec![[0.0; 3]; kk];
+        }
+        let ax = f64x3(axis);
+        let idx: Vec<usize> = (0..self.len()).filter(|&i| dot3(f64x3(self.n[i]), ax) > 0.0).collect();
+        let rays = Rays { origins: idx.iter().map(|&i| self.x[i]).collect(), dirs: vec![axis; idx.len()] };
+        let f = |p: &[f32]| sdf.sdf(backend, p);
+        let mut hits = Vec::new();
+        let mut hit_pts = Vec::new();
+        for start in (0..rays.len()).step_by(1 << 15) {
+            let end = (start + (1 << 15)).min(rays.len());
+            let r = Rays { origins: rays.origins[start..end].to_vec(), dirs: rays.dirs[start..end].to_vec() };
+            let (hit, t) = trace_secondary(&f, &r, cfg.secondary_offset, cfg.secondary_steps, cfg.secondary_threshold, 1.0)?;
+            self.evaluations += r.len() * cfg.secondary_steps;
+            for j in 0..r.len() {
+                if hit[j] {
+                    hits.push(idx[start + j]);
+                    hit_pts.push(r.at(j, t[j]));
+                }
+            }
+        }
+        let hn = normals_at(backend, sdf, &hit_pts)?;
+        self.evaluations += 6 * hit_pts.len();
+        for i in 0..self.len() {
+            self.hit_index[i * kk + k] = u32::MAX;
+        }
+        for (h, &i) in hits.iter().enumerate() {
+            self.hit_index[i * kk + k] = h as u32;
+        }
+        self.lobe_hits[k] = hit_pts.into_iter().zip(hn).collect();
+        self.traced_axes[k] = axis;
+        Ok(())
+    }
+
+    /// Trace every lobe whose axis moved more than `cfg.retrace_degrees` since it was traced
+    /// (all of them the first time). Returns how many were traced.
+    pub fn refresh(&mut self, backend: &Backend, sdf: &Stage1Model, cfg: &Stage2Config, axes: &[[f32; 3]]) -> Result<usize, BackendError> {
+        if cfg.indirect == IndirectMode::None {
+            return Ok(0);
+        }
+        let first = self.traced_axes.len() != cfg.lobes || self.hit_index.len() != self.len() * cfg.lobes;
+        let cos_tol = (cfg.retrace_degrees as f64).to_radians().cos();
+        let mut n = 0;
+        for (k, &a) in axes.iter().enumerate() {
+            if first || dot3(f64x3(a), f64x3(self.traced_axes[k])) < cos_tol {
+                self.trace_lobe(backend, sdf, cfg, k, a)?;
+                n += 1;
+            }
+        }
+        if !first {
+            self.retraced += n;
+        }
+        Ok(n)
+    }
+
+    /// Fraction of (point, lobe above the horizon) pairs that are blocked.
+    pub fn blocked_fraction(&self) -> f64 {
+        let blocked = self.hit_index.iter().filter(|&&h| h != u32::MAX).count();
+        blocked as f64 / self.hit_index.len().max(1) as f64
+    }
+
+    /// The batch of cached points `idx`.
+    pub fn batch(&self, idx: &[usize], lobes: usize) -> Stage2Batch {
+        let mut b = Stage2Batch::default();
+        let traced = self.hit_index.len() == self.len() * lobes;
+        for &i in idx {
+            b.x.push(self.x[i]);
+            b.n.push(self.n[i]);
+            b.v.push(self.v[i]);
+            b.target.push(self.target[i]);
+            let mut h = Vec::new();
+            if traced {
+                for k in 0..lobes {
+                    let j = self.hit_index[i * lobes + k];
+                    if j != u32::MAX {
+                        let (x2, n2) = self.lobe_hits[k][j as usize];
+                        h.push((k, x2, n2));
+                    }
+                }
+            }
+            b.hits.push(h);
+        }
+        b
+    }
+}
+
+// ---- the trainer ---------------------------------------------------------------------------
+
+/// Stage-2 checkpoint file names inside a run folder (beside stage 1's).
+pub const CHECKPOINT2: &str = "material.safetensors";
+pub const RUN_CONFIG2: &str = "material.json";
+
+/// The stage-2 model, its Adam state and step.
+#[derive(Debug)]
+pub struct Stage2Trainer {
+    pub model: Stage2Model,
+    adam_enc: AdamState,
+    adam_dec: Vec<AdamState>,
+    adam_light: AdamState,
+    adam_ind: AdamState,
+    pub step: u64,
+    pub skipped: u64,
+    host: Backend,
+}
+
+impl Stage2Trainer {
+    pub fn new(cfg: &Stage2Config) -> Result<Self, BackendError> {
+        let model = Stage2Model::new(cfg)?;
+        let host = Backend::cpu();
+        Ok(Self {
+            adam_enc: AdamState::new(&host, model.enc_params.len()),
+            adam_dec: model.dec_params.iter().map(|p| AdamState::new(&host, p.len())).collect(),
+            adam_light: AdamState::new(&host, model.light.len()),
+            adam_ind: AdamState::new(&host, model.ind_params.len()),
+            model,
+            step: 0,
+            skipped: 0,
+            host,
+        })
+    }
+
+    pub fn cfg(&self) -> &Stage2Config {
+        &self.model.cfg
+    }
+
+    pub fn weights(&self) -> Stage2Weights {
+        let c = self.cfg();
+        Stage2Weights { smooth: c.smooth_weight, sigma: c.smooth_sigma, kl: c.kl_weight, rho: c.kl_rho }
+    }
+
+    pub fn step_rng(&self, step: u64) -> rand::rngs::StdRng {
+        crate::util::rng(self.cfg().seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(step).wrapping_add(0x2222))
+    }
+
+    /// Apply gradients; a step with any non-finite value is skipped and counted.
+    pub fn apply(&mut self, g: Stage2Grads) -> Result<(bool, f64), BackendError> {
+        let all = g.d_enc.iter().chain(g.d_dec.iter().flatten()).chain(&g.d_light).chain(&g.d_ind);
+        let norm2: f64 = all.clone().map(|&v| (v as f64) * (v as f64)).sum();
+        if !norm2.is_finite() || !g.stats.loss.is_finite() {
+            self.skipped += 1;
+            return Ok((false, f64::NAN));
+        }
+        let f = self.cfg().lr_factor(self.step);
+        let (lm, ll, li) = (self.cfg().lr_material * f, self.cfg().lr_light * f, self.cfg().lr_indirect * f);
+        let cfg = AdamConfig { eps: 1e-15, ..AdamConfig::with_lr(lm) };
+        let h = self.host.clone();
+        step_host(&h, &cfg, &mut self.model.enc_params, g.d_enc, &mut self.adam_enc, lm)?;
+        for ((p, d), s) in self.model.dec_params.iter_mut().zip(g.d_dec).zip(&mut self.adam_dec) {
+            step_host(&h, &cfg, p, d, s, lm)?;
+        }
+        step_host(&h, &cfg, &mut self.model.light, g.d_light, &mut self.adam_light, ll)?;
+        if self.cfg().indirect == IndirectMode::Ours {
+            step_host(&h, &cfg, &mut self.model.ind_params, g.d_ind, &mut self.adam_ind, li)?;
+        }
+        Ok((true, norm2.sqrt()))
+    }
+
+    /// One iteration on `batch` points drawn from the cache (seeded by `(seed, step)`).
+    pub fn train_step(&mut self, backend: &Backend, cache: &SurfaceCache) -> Result<Stage2Stats, BackendError> {
+        if cache.is_empty() {
+            return Err(BackendError::Config("stage 2: no cached surface points (the stage-1 surface is hit by no masked pixel)".into()));
+        }
+        let mut rng = self.step_rng(self.step);
+        let idx: Vec<usize> = (0..self.cfg().batch).map(|_| rng.random_range(0..cache.len())).collect();
+        let batch = cache.batch(&idx, self.cfg().lobes);
+        let noise_seed = rng.random::<u64>();
+        let g = loss_and_grad(backend, &self.model, &batch, &self.weights(), noise_seed)?;
+        let stats = g.stats.clone();
+        let (applied, norm) = self.apply(g)?;
+        self.step += 1;
+        Ok(Stage2Stats { step: self.step, applied, grad_norm: norm, ..stats })
+    }
+
+    /// Save params + Adam state + config + step + the cache's traced axes into `dir`.
+    pub fn save(&self, dir: &Path, scene_key: &str, traced_axes: &[[f32; 3]]) -> Result<(), DataError> {
+        let mut st = ParamStore::new();
+        let err = |e: BackendError| DataError::new(dir, e.to_string());
+        let m = &self.model;
+        st.insert("encoder", &[m.enc_params.len()], m.enc_params.clone()).map_err(err)?;
+        for (i, p) in m.dec_params.iter().enumerate() {
+            st.insert(&format!("decoder{i}"), &[p.len()], p.clone()).map_err(err)?;
+            st.put_adam_state(&self.host, &format!("decoder{i}"), &self.adam_dec[i]).map_err(err)?;
+        }
+        st.insert("light", &[m.light.len()], m.light.clone()).map_err(err)?;
+        st.insert("indirect", &[m.ind_params.len()], m.ind_params.clone()).map_err(err)?;
+        let axes: Vec<f32> = traced_axes.iter().flatten().copied().collect();
+        st.insert("traced_axes", &[axes.len()], axes).map_err(err)?;
+        st.put_adam_state(&self.host, "encoder", &self.adam_enc).map_err(err)?;
+        st.put_adam_state(&self.host, "light", &self.adam_light).map_err(err)?;
+        st.put_adam_state(&self.host, "indirect", &self.adam_ind).map_err(err)?;
+        st.set_config(&m.cfg).map_err(|e| DataError::new(dir, e.to_string()))?;
+        st.set_step(self.step);
+        st.metadata.insert("scene".into(), scene_key.to_string());
+        st.metadata.insert("skipped".into(), self.skipped.to_string());
+        st.save(&dir.join(CHECKPOINT2))?;
+        let cfg = serde_json::json!({ "stage": "material", "step": self.step, "scene": scene_key, "config": m.cfg });
+        crate::util::atomic_write(&dir.join(RUN_CONFIG2), serde_json::to_string_pretty(&cfg).unwrap_or_default().as_bytes())
+    }
+
+    /// Load a stage-2 checkpoint. Returns the trainer, its scene key and the traced axes.
+    pub fn load(dir: &Path, expect_scene: Option<&str>) -> Result<(Self, String, Vec<[f32; 3]>), DataError> {
+        let path = dir.join(CHECKPOINT2);
+        if !path.is_file() {
+            return Err(DataError::new(&path, "no stage-2 checkpoint here (train one with `pii-bake train <scene> --out <run-dir> --stage material`)"));
+        }
+        let st = ParamStore::load(&path)?;
+        let cfg: Stage2Config = st
+            .config_json()
+            .ok_or_else(|| DataError::new(&path, "checkpoint has no stage-2 configuration"))
+            .and_then(|j| serde_json::from_str(j).map_err(|e| DataError::new(&path, format!("stage-2 configuration: {e}"))))?;
+        let scene = st.metadata.get("scene").cloned().unwrap_or_default();
+        if let Some(k) = expect_scene {
+            if k != scene {
+                return Err(DataError::new(&path, format!("this stage-2 run was trained on another scene ({scene}), not {k}")));
+            }
+        }
+        let mut t = Stage2Trainer::new(&cfg).map_err(|e| DataError::new(&path, e.to_string()))?;
+        let get = |name: &str, len: usize| -> Result<Vec<f32>, DataError> {
+            let d = st.data(name).ok_or_else(|| DataError::new(&path, format!("checkpoint lacks tensor {name:?}")))?;
+            if d.len() != len {
+                return Err(DataError::new(&path, format!("tensor {name:?} has {} values; this configuration needs {len}", d.len())));
+            }
+            if d.iter().any(|v| !v.is_finite()) {
+                return Err(DataError::new(&path, format!("tensor {name:?} holds NaN/Inf values")));
+            }
+            Ok(d.to_vec())
+        };
+        t.model.enc_params = get("encoder", t.model.enc_params.len())?;
+        for i in 0..t.model.dec_params.len() {
+            t.model.dec_params[i] = get(&format!("decoder{i}"), t.model.dec_params[i].len())?;
+        }
+        t.model.light = get("light", t.model.light.len())?;
+        t.model.ind_params = get("indirect", t.model.ind_params.len())?;
+        let axes = get("traced_axes", 3 * cfg.lobes).or_else(|_| get("traced_axes", 0))?;
+        let traced: Vec<[f32; 3]> = axes.chunks_exact(3).map(|a| [a[0], a[1], a[2]]).collect();
+        let host = t.host.clone();
+        let e = |e: BackendError| DataError::new(&path, e.to_string());
+        if let Some(s) = st.adam_state(&host, "encoder").map_err(e)? {
+            t.adam_enc = s;
+        }
+        for i in 0..t.adam_dec.len() {
+            if let Some(s) = st.adam_state(&host, &format!("decoder{i}")).map_err(e)? {
+                t.adam_dec[i] = s;
+            }
+        }
+        if let Some(s) = st.adam_state(&host, "light").map_err(e)? {
+            t.adam_light = s;
+        }
+        if let Some(s) = st.adam_state(&host, "indirect").map_err(e)? {
+            t.adam_ind = s;
+        }
+        t.step = st.step().unwrap_or(0);
+        t.skipped = st.metadata.get("skipped").and_then(|s| s.parse().ok()).unwrap_or(0);
+        Ok((t, scene, traced))
+    }
+}
+
+fn step_host(host: &Backend, cfg: &AdamConfig, params: &mut Vec<f32>, grads: Vec<f32>, state: &mut AdamState, lr: f32) -> Result<(), BackendError> {
+    let mut p = host.from_vec(std::mem::take(params));
+    let r = host.adam_step_group(cfg, &mut [AdamItem { params: &mut p, grads: &host.from_vec(grads), state }], lr);
+    if let crate::backend::Tensor::Host(v) = p {
+        *params = v;
+    }
+    r.map(|_| ())
+}
+
+/// Render cached-style points (forward): linear RGB per point, given per-point blocked lobes.
+pub fn render_points(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch) -> Result<Vec<[f32; 3]>, BackendError> {
+    let (albedo, rough) = model.material(backend, &batch.x)?;
+    let lobes = model.lobes();
+    let k = model.cfg.lobes;
+    let (mut hx, mut hn, mut owner) = (Vec::new(), Vec::new(), Vec::new());
+    if model.cfg.indirect != IndirectMode::None {
+        for (i, hs) in batch.hits.iter().enumerate() {
+            for &(kk, x2, n2) in hs {
+                hx.push(x2);
+                hn.push(n2);
+                owner.push((i, kk));
+            }
+        }
+    }
+    let w = model.indirect_weights(backend, &hx, &hn)?;
+    let mut per: Vec<Vec<(usize, usize)>> = vec![Vec::new(); batch.len()];
+    for (s, &(i, kk)) in owner.iter().enumerate() {
+        per[i].push((kk, s));
+    }
+    Ok((0..batch.len())
+        .into_par_iter()
+        .map(|i| {
+            let mut li = lobes.clone();
+            for &(kk, s) in &per[i] {
+                li[kk] = mix_lobe(&lobes, kk, &w[s * k..(s + 1) * k]);
+            }
+            let (sp, df) = shade_f64(f64x3(albedo[i]), rough[i] as f64, f64x3(batch.n[i]), f64x3(batch.v[i]), &li);
+            [0, 1, 2].map(|c| (sp[c].max(0.0) + df[c].max(0.0)) as f32)
+        })
+        .collect())
+}

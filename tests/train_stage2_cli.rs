@@ -1,0 +1,149 @@
+//! `train --stage material`, `export --run` of a stage-2 run, `relight` and `eval` through the
+//! binary, at tiny sizes: a stage-2 run interrupted and resumed follows the straight run's loss
+//! curve; the export ships learned textures and environment; relight writes what `eval` scores;
+//! bad inputs (no stage-1 run, a run from another scene, a map that is not a latlong HDR, an
+//! unwritable folder) give one clear error naming the file.
+
+use std::path::{Path, PathBuf};
+
+mod common;
+
+fn example() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/example")
+}
+
+fn pii(args: &[&str]) -> std::process::Output {
+    assert_cmd::Command::cargo_bin("pii-bake")
+        .unwrap()
+        .env("XDG_RUNTIME_DIR", std::env::temp_dir())
+        .args(["--backend", "cpu"])
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+fn text(o: &std::process::Output) -> String {
+    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+}
+
+fn stage1(run: &Path) {
+    let ex = example();
+    let o = pii(&["train", ex.to_str().unwrap(), "--out", run.to_str().unwrap(), "--rays", "96", "--downscale", "4", "--init", "hull", "--init-steps", "20", "--iterations", "3", "--seed", "2"]);
+    assert!(o.status.success(), "{}", text(&o));
+}
+
+const TINY2: [&str; 12] = ["--stage", "material", "--lobes", "6", "--material-batch", "64", "--material-set", "points=600", "--material-set", "checkpoint_every=2", "--seed", "2"];
+
+fn stage2(run: &Path, extra: &[&str]) -> std::process::Output {
+    let ex = example();
+    let mut a = vec!["train", ex.to_str().unwrap(), "--out", run.to_str().unwrap()];
+    a.extend_from_slice(&TINY2);
+    a.extend_from_slice(extra);
+    pii(&a)
+}
+
+fn curve(run: &Path) -> Vec<String> {
+    std::fs::read_to_string(run.join("material_curve.csv")).unwrap().lines().skip(1).map(|l| l.rsplit_once(',').unwrap().0.to_string()).collect()
+}
+
+fn copy_dir(src: &Path, dst: &Path) {
+    std::fs::create_dir_all(dst).unwrap();
+    for e in std::fs::read_dir(src).unwrap() {
+        let e = e.unwrap();
+        if e.file_type().unwrap().is_file() {
+            std::fs::copy(e.path(), dst.join(e.file_name())).unwrap();
+        }
+    }
+}
+
+#[test]
+fn stage_two_resumes_exactly_exports_and_relights() {
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    stage1(&a);
+    copy_dir(&a, &b);
+    let o = stage2(&a, &["--material-iterations", "6"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let out = text(&o);
+    assert!(out.contains("stage 2") && out.contains("cached surface points") && out.contains("PSNR"), "{out}");
+    let o = stage2(&b, &["--material-iterations", "6", "--stop-at", "3"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let o = stage2(&b, &["--material-iterations", "6", "--resume"]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("resuming stage 2"), "{}", text(&o));
+    let (ca, cb) = (curve(&a), curve(&b));
+    assert_eq!(ca.len(), 6);
+    assert_eq!(ca, cb, "a resumed stage-2 run follows the straight run");
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("material_report.json")).unwrap()).unwrap();
+    assert_eq!(report["sizes"]["lobes"], 6);
+    assert_eq!(report["config"]["decoder"], "separate", "a transforms.json scene is synthetic");
+    assert!(report["cache"]["points"].as_u64().unwrap() > 100);
+    assert!(report["eval"]["psnr"].as_f64().unwrap().is_finite());
+
+    // Export: learned textures and the learned environment.
+    let asset = dir.path().join("asset");
+    let o = pii(&["export", "--run", a.to_str().unwrap(), "--out", asset.to_str().unwrap(), "--resolution", "40", "--texture", "64", "--name", "spot"]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("from the material field"), "{}", text(&o));
+    common::assert_gltf_valid(&[asset.join("spot.glb")]);
+
+    // Relight one view under a shipped map; eval scores the folder.
+    let rel = dir.path().join("relit");
+    let env = example().join("env/sunset.exr");
+    let o = pii(&["relight", a.to_str().unwrap(), "--env", env.to_str().unwrap(), "--lobes", "8", "--max-views", "1", "--out", rel.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    for f in ["test/r_000.png", "test/r_000_relit_sunset.png", "test/r_000_albedo.png", "test/r_000_roughness.png", "env.exr"] {
+        assert!(rel.join(f).is_file(), "{f} missing: {}", text(&o));
+    }
+    let metrics = dir.path().join("metrics.json");
+    let ex = example();
+    let o = pii(&["eval", "--gt", ex.to_str().unwrap(), "--pred", rel.to_str().unwrap(), "--out", metrics.to_str().unwrap(), "--mesh-samples", "1000"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let m = std::fs::read_to_string(&metrics).unwrap();
+    assert!(m.contains("relit") && m.contains("albedo"), "{m}");
+}
+
+#[test]
+fn stage_two_bad_inputs_give_clear_errors() {
+    let dir = tempfile::tempdir().unwrap();
+    // No stage-1 run.
+    let empty = dir.path().join("empty");
+    let o = stage2(&empty, &["--material-iterations", "1"]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(text(&o).contains("checkpoint.safetensors") && text(&o).contains("train the geometry first"), "{}", text(&o));
+
+    // A stage-1 run from another scene.
+    let run = dir.path().join("run");
+    stage1(&run);
+    let other = dir.path().join("other_scene");
+    copy_dir(&example(), &other);
+    for sub in ["train", "test", "env", "gt"] {
+        copy_dir(&example().join(sub), &other.join(sub));
+    }
+    let o = pii(&["train", other.to_str().unwrap(), "--out", run.to_str().unwrap(), "--stage", "material", "--material-iterations", "1", "--downscale", "4"]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(text(&o).contains("another scene"), "{}", text(&o));
+
+    // Relight without a stage-2 run, with a map that is not a latlong HDR, into an unwritable folder.
+    let rel = dir.path().join("rel");
+    let env = example().join("env/sunset.exr");
+    let o = pii(&["relight", run.to_str().unwrap(), "--env", env.to_str().unwrap(), "--out", rel.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(text(&o).contains("no stage-2 run here"), "{}", text(&o));
+    let o = stage2(&run, &["--material-iterations", "1"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let png = example().join("test/r_000.png");
+    let o = pii(&["relight", run.to_str().unwrap(), "--env", png.to_str().unwrap(), "--out", rel.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(text(&o).contains("r_000.png") && text(&o).contains("exr"), "{}", text(&o));
+    let square = dir.path().join("square.exr");
+    pii_bake::image_io::write_exr_rgb(&square, 8, 8, &[0.5; 8 * 8 * 3]).unwrap();
+    let o = pii(&["relight", run.to_str().unwrap(), "--env", square.to_str().unwrap(), "--out", rel.to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(text(&o).contains("square.exr") && text(&o).contains("2:1"), "{}", text(&o));
+    let blocker = dir.path().join("file");
+    std::fs::write(&blocker, b"x").unwrap();
+    let o = pii(&["relight", run.to_str().unwrap(), "--env", env.to_str().unwrap(), "--out", blocker.join("sub").to_str().unwrap()]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(!blocker.join("sub").exists());
+}
