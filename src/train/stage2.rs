@@ -94,6 +94,9 @@ pub struct Stage2Config {
     pub iterations: u64,
     pub lr_material: f32,
     pub lr_light: f32,
+    /// The lobe axes learn at `lr_light` times this (they move slowly: each move past
+    /// `retrace_degrees` costs a re-trace of that lobe).
+    pub axis_lr_factor: f32,
     pub lr_indirect: f32,
     /// The learning rates decay exponentially to this factor at the last iteration.
     pub lr_final_factor: f32,
@@ -134,6 +137,7 @@ impl Stage2Config {
             iterations,
             lr_material: 5e-3,
             lr_light: 1e-2,
+            axis_lr_factor: 0.1,
             lr_indirect: 2e-3,
             lr_final_factor: 0.1,
             smooth_weight: 0.1,
@@ -157,7 +161,7 @@ impl Stage2Config {
         if self.batch == 0 || self.points == 0 || self.latent_dim == 0 {
             return bad("batch, points and latent size must be > 0");
         }
-        let lrs = [self.lr_material, self.lr_light, self.lr_indirect, self.lr_final_factor];
+        let lrs = [self.lr_material, self.lr_light, self.lr_indirect, self.lr_final_factor, self.axis_lr_factor];
         if lrs.iter().any(|v| !(v.is_finite() && *v >= 0.0)) {
             return bad("learning rates must be finite and >= 0");
         }
@@ -1001,7 +1005,16 @@ impl Stage2Trainer {
         for ((p, d), s) in self.model.dec_params.iter_mut().zip(g.d_dec).zip(&mut self.adam_dec) {
             step_host(&h, &cfg, p, d, s, lm)?;
         }
+        // Per-entry learning rate for the axes: Adam's moments do not depend on the rate, so
+        // scaling the axes' update is a step at `ll · axis_lr_factor`.
+        let before = self.model.light.clone();
         step_host(&h, &cfg, &mut self.model.light, g.d_light, &mut self.adam_light, ll)?;
+        let fa = self.cfg().axis_lr_factor;
+        for (p, b) in self.model.light.chunks_exact_mut(LIGHT_STRIDE).zip(before.chunks_exact(LIGHT_STRIDE)) {
+            for a in 0..3 {
+                p[a] = b[a] + (p[a] - b[a]) * fa;
+            }
+        }
         if self.cfg().indirect == IndirectMode::Ours {
             step_host(&h, &cfg, &mut self.model.ind_params, g.d_ind, &mut self.adam_ind, li)?;
         }
