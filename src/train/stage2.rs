@@ -118,7 +118,7 @@ impl Stage2Config {
     /// holds more points than there are pixels to explain).
     pub fn new(preset: Preset, foreground_pixels: usize) -> Self {
         let (lobes, widths, ind, points, batch, iterations) = match preset {
-            Preset::Fast => (32, vec![128; 3], vec![128; 2], 32_768, 1024, 600),
+            Preset::Fast => (32, vec![128; 3], vec![128; 2], 32_768, 1024, 1200),
             Preset::Paper => (128, vec![256; 3], vec![512; 4], 65_536, 2048, 3000),
         };
         Self {
