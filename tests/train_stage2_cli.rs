@@ -147,3 +147,25 @@ fn stage_two_bad_inputs_give_clear_errors() {
     assert_eq!(o.status.code(), Some(1), "{}", text(&o));
     assert!(!blocker.join("sub").exists());
 }
+
+#[test]
+fn bench_material_writes_figures_per_variant() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    stage1(&run);
+    let out = dir.path().join("bench");
+    let o = pii(&[
+        "bench", "material", "--run", run.to_str().unwrap(), "--out", out.to_str().unwrap(), "--lobes", "4", "--indirect", "ours", "none", "--iterations", "2",
+        "--relight-views", "0", "--set", "points=400", "--set", "batch=32",
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let csv = std::fs::read_to_string(out.join("bench-material.csv")).unwrap();
+    let rows: Vec<&str> = csv.lines().skip(1).collect();
+    assert_eq!(rows.len(), 2, "{csv}");
+    assert!(rows[0].starts_with("k4-ours") && rows[1].starts_with("k4-none"), "{csv}");
+    let json: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("bench-material.json")).unwrap()).unwrap();
+    let r = &json["rows"][0];
+    assert!(r["it_per_s"].as_f64().unwrap() > 0.0 && r["heldout_psnr"].as_f64().unwrap().is_finite(), "{r}");
+    assert!(r["cache_evaluations"].as_f64().unwrap() > 0.0);
+    assert!(std::fs::read_to_string(out.join("bench-material.svg")).unwrap().contains("<svg"));
+}

@@ -71,6 +71,8 @@ pub enum BenchCommand {
     Env(crate::sg::bench::BenchEnvArgs),
     /// Stage-1 training: Chamfer against wall time per variant (preset × tracing × init), with a chart.
     Train(crate::train::bench::BenchTrainArgs),
+    /// Stage-2 training on a stage-1 run: accuracy against wall time per variant (lobes × indirect), with a chart.
+    Material(crate::train::bench_material::BenchMaterialArgs),
     /// Asset back end timings (grid, marching cubes, simplify, unwrap, bake).
     Export(crate::export::bench::BenchExportArgs),
 }
@@ -136,5 +138,6 @@ pub fn run(cmd: &Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Bench(BenchCommand::Env(a)) => crate::sg::bench::run(a, ctx),
         Command::Bench(BenchCommand::Export(a)) => crate::export::bench::run(a, ctx),
         Command::Bench(BenchCommand::Train(a)) => crate::train::bench::run(a, ctx),
+        Command::Bench(BenchCommand::Material(a)) => crate::train::bench_material::run(a, ctx),
     }
 }

@@ -1,6 +1,7 @@
 //! Training stages, losses, schedules, progress, checkpoint/resume.
 
 pub mod bench;
+pub mod bench_material;
 pub mod cli;
 pub mod hull;
 pub mod material;

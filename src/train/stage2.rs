@@ -795,6 +795,8 @@ pub struct SurfaceCache {
     /// `[point][lobe]` → index into `lobe_hits[lobe]`, or `u32::MAX` (not blocked / below the horizon).
     pub hit_index: Vec<u32>,
     pub lobe_hits: Vec<Vec<([f32; 3], [f32; 3])>>,
+    /// Secondary rays traced per lobe (points with the lobe above their horizon).
+    pub lobe_traced: Vec<usize>,
     /// Field evaluations spent tracing (primary, secondary, normals).
     pub evaluations: usize,
     /// Lobes re-traced since the cache was built.
@@ -856,6 +858,7 @@ impl SurfaceCache {
         if self.traced_axes.len() != kk || self.hit_index.len() != self.len() * kk {
             self.hit_index = vec![u32::MAX; self.len() * kk];
             self.lobe_hits = vec![Vec::new(); kk];
+            self.lobe_traced = vec![0; kk];
             self.traced_axes = vec![[0.0; 3]; kk];
         }
         let ax = f64x3(axis);
@@ -885,6 +888,7 @@ impl SurfaceCache {
             self.hit_index[i * kk + k] = h as u32;
         }
         self.lobe_hits[k] = hit_pts.into_iter().zip(hn).collect();
+        self.lobe_traced[k] = idx.len();
         self.traced_axes[k] = axis;
         Ok(())
     }
@@ -912,8 +916,8 @@ impl SurfaceCache {
 
     /// Fraction of (point, lobe above the horizon) pairs that are blocked.
     pub fn blocked_fraction(&self) -> f64 {
-        let blocked = self.hit_index.iter().filter(|&&h| h != u32::MAX).count();
-        blocked as f64 / self.hit_index.len().max(1) as f64
+        let blocked: usize = self.lobe_hits.iter().map(Vec::len).sum();
+        blocked as f64 / self.lobe_traced.iter().sum::<usize>().max(1) as f64
     }
 
     /// The batch of cached points `idx`.
