@@ -169,3 +169,33 @@ fn bench_material_writes_figures_per_variant() {
     assert!(r["cache_evaluations"].as_f64().unwrap() > 0.0);
     assert!(std::fs::read_to_string(out.join("bench-material.svg")).unwrap().contains("<svg"));
 }
+
+#[test]
+fn eight_views_give_an_asset_and_finite_figures() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("eight");
+    copy_dir(&example(), &scene);
+    for sub in ["train", "test", "env", "gt"] {
+        copy_dir(&example().join(sub), &scene.join(sub));
+    }
+    let tf = scene.join("transforms_train.json");
+    let mut v: serde_json::Value = serde_json::from_slice(&std::fs::read(&tf).unwrap()).unwrap();
+    let frames: Vec<serde_json::Value> = v["frames"].as_array().unwrap().iter().step_by(3).take(8).cloned().collect();
+    assert_eq!(frames.len(), 8);
+    v["frames"] = serde_json::Value::Array(frames);
+    std::fs::write(&tf, serde_json::to_vec(&v).unwrap()).unwrap();
+    let run = dir.path().join("run");
+    let o = pii(&[
+        "train", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--stage", "all", "--rays", "96", "--downscale", "4", "--init-steps", "20", "--iterations", "3",
+        "--lobes", "6", "--material-iterations", "4", "--material-batch", "64", "--material-set", "points=600",
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("material_report.json")).unwrap()).unwrap();
+    assert!(report["eval"]["psnr"].as_f64().unwrap().is_finite());
+    assert!(report["weak_result"].is_boolean() && report["flags"].is_array());
+    assert_eq!(report["skipped_steps"], 0);
+    let asset = dir.path().join("asset");
+    let o = pii(&["export", "--run", run.to_str().unwrap(), "--out", asset.to_str().unwrap(), "--resolution", "32", "--texture", "64", "--name", "eight"]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(asset.join("eight.glb").is_file() && asset.join("env.exr").is_file());
+}
