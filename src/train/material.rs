@@ -168,7 +168,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
 
     // The surface cache: primary points once; secondary hits per lobe.
     let tcache = Instant::now();
-    let mut cache = SurfaceCache::build(backend, sdf, tc, &data, cfg.points, cfg.seed)?;
+    let mut cache = SurfaceCache::build(backend, sdf, tc, &data, cfg.points, cfg.seed, super::stage2::normal_step(sdf, &cfg))?;
     if cache.len() < 16 {
         return Err(DataError::new(scene_path, format!("only {} masked training pixels reach the stage-1 surface: the geometry does not match the masks (retrain stage 1)", cache.len())).into());
     }
@@ -367,7 +367,7 @@ pub fn render_view(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, model
         let idx: Vec<usize> = (0..r.len()).filter(|&i| tr.hit[i]).collect();
         let mut c = SurfaceCache { x: idx.iter().map(|&i| tr.points[i]).collect(), v: idx.iter().map(|&i| r.dirs[i].map(|v| -v)).collect(), ..Default::default() };
         c.target = vec![[0.0; 3]; c.x.len()];
-        c.n = super::stage2::normals_at(backend, sdf, &c.x)?;
+        c.n = super::stage2::normals_at(backend, sdf, &c.x, super::stage2::normal_step(sdf, &model.cfg))?;
         for i in 0..c.x.len() {
             let d = c.n[i][0] * c.v[i][0] + c.n[i][1] * c.v[i][1] + c.n[i][2] * c.v[i][2];
             if d < 0.0 {
@@ -417,7 +417,7 @@ fn relight_points(backend: &Backend, sdf: &Stage1Model, model: &Stage2Model, cfg
         }
     }
     if !hx.is_empty() {
-        hn = super::stage2::normals_at(backend, sdf, &hx)?;
+        hn = super::stage2::normals_at(backend, sdf, &hx, super::stage2::normal_step(sdf, cfg))?;
     }
     let (ha, hr) = model.material(backend, &hx)?;
     let bounce: Vec<[f32; 3]> = (0..hx.len())

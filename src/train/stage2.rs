@@ -109,6 +109,8 @@ pub struct Stage2Config {
     pub secondary_threshold: f32,
     /// Re-trace a lobe's secondary rays once its axis has moved this far (degrees).
     pub retrace_degrees: f32,
+    /// Shading normals: central differences of the stage-1 field with its gradient step times this.
+    pub normal_step_factor: f32,
     pub seed: u64,
     pub checkpoint_every: u64,
 }
@@ -148,6 +150,7 @@ impl Stage2Config {
             secondary_steps: 10,
             secondary_threshold: 5e-4,
             retrace_degrees: 3.0,
+            normal_step_factor: 1.0,
             seed: 0,
             checkpoint_every: 100,
         }
@@ -803,19 +806,35 @@ pub struct SurfaceCache {
     pub retraced: usize,
 }
 
-/// Unit normals (numerical gradient of the stage-1 field) at points.
-pub fn normals_at(backend: &Backend, sdf: &Stage1Model, x: &[[f32; 3]]) -> Result<Vec<[f32; 3]>, BackendError> {
+/// Unit normals at points: central differences of the stage-1 field with step `step` (the
+/// field's own gradient step times the config's `normal_step_factor`).
+pub fn normals_at(backend: &Backend, sdf: &Stage1Model, x: &[[f32; 3]], step: f32) -> Result<Vec<[f32; 3]>, BackendError> {
     let mut out = Vec::with_capacity(x.len());
-    for c in x.chunks(1 << 14) {
-        let o = sdf.field.eval_with_gradient(backend, &sdf.sdf_params, bytemuck::cast_slice(c))?;
-        out.extend(o.gradient.chunks_exact(3).map(|g| unit([g[0] as f64, g[1] as f64, g[2] as f64]).map(|v| v as f32)));
+    for c in x.chunks(1 << 13) {
+        let mut pts = Vec::with_capacity(c.len() * 18);
+        for p in c {
+            for a in 0..3 {
+                for s in [1.0f32, -1.0] {
+                    let mut q = *p;
+                    q[a] += s * step;
+                    pts.extend_from_slice(&q);
+                }
+            }
+        }
+        let v = sdf.sdf(backend, &pts)?;
+        out.extend(v.chunks_exact(6).map(|d| unit([(d[0] - d[1]) as f64, (d[2] - d[3]) as f64, (d[4] - d[5]) as f64]).map(|v| v as f32)));
     }
     Ok(out)
 }
 
+/// The normal step of a stage-2 configuration on a stage-1 model.
+pub fn normal_step(sdf: &Stage1Model, cfg: &Stage2Config) -> f32 {
+    sdf.field.config.grad_step * cfg.normal_step_factor
+}
+
 impl SurfaceCache {
     /// Trace `n` foreground training pixels (drawn with `seed`) onto the stage-1 surface.
-    pub fn build(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, data: &TrainData, n: usize, seed: u64) -> Result<Self, BackendError> {
+    pub fn build(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, data: &TrainData, n: usize, seed: u64, normal_step: f32) -> Result<Self, BackendError> {
         let mut rng = crate::util::rng(seed ^ 0xCAC4E);
         let batch = data.sample(&mut rng, n, 1.0);
         let mut c = SurfaceCache::default();
@@ -834,7 +853,7 @@ impl SurfaceCache {
                 }
             }
         }
-        c.n = normals_at(backend, sdf, &c.x)?;
+        c.n = normals_at(backend, sdf, &c.x, normal_step)?;
         c.evaluations += 6 * c.x.len();
         // Normals facing away from the camera (noise at silhouettes) are flipped toward it.
         for i in 0..c.x.len() {
@@ -879,7 +898,7 @@ impl SurfaceCache {
                 }
             }
         }
-        let hn = normals_at(backend, sdf, &hit_pts)?;
+        let hn = normals_at(backend, sdf, &hit_pts, normal_step(sdf, cfg))?;
         self.evaluations += 6 * hit_pts.len();
         for i in 0..self.len() {
             self.hit_index[i * kk + k] = u32::MAX;
