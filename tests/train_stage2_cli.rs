@@ -199,3 +199,42 @@ fn eight_views_give_an_asset_and_finite_figures() {
     assert!(o.status.success(), "{}", text(&o));
     assert!(asset.join("eight.glb").is_file() && asset.join("env.exr").is_file());
 }
+
+#[test]
+fn ctrl_c_in_stage_two_writes_a_checkpoint_and_resume_continues() {
+    use std::io::BufRead;
+    use std::process::{Command, Stdio};
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    stage1(&run);
+    let ex = example();
+    let mut child = Command::new(assert_cmd::cargo::cargo_bin("pii-bake"))
+        .env("XDG_RUNTIME_DIR", std::env::temp_dir())
+        .args(["--backend", "cpu", "--json", "train", ex.to_str().unwrap(), "--out", run.to_str().unwrap(), "--material-iterations", "100000"])
+        .args(TINY2)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stdout = child.stdout.take().unwrap();
+    let mut lines = std::io::BufReader::new(stdout).lines();
+    loop {
+        let l = lines.next().expect("progress records before the end").unwrap();
+        if l.contains("\"type\":\"progress\"") && l.contains("\"material\"") {
+            break;
+        }
+    }
+    assert!(Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap().success());
+    for _ in lines {}
+    let o = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(1), "{err}");
+    assert!(err.contains("interrupted at stage-2 step") && err.contains("--resume"), "{err}");
+    let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("material.json")).unwrap()).unwrap();
+    let step = meta["step"].as_u64().unwrap();
+    assert!(step >= 1);
+    let n = (step + 2).to_string();
+    let o = stage2(&run, &["--material-iterations", &n, "--resume"]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert_eq!(curve(&run).len() as u64, step + 2);
+}
