@@ -3,28 +3,12 @@
 //! exports to a valid asset, and bad inputs (no masks, cameras that miss the object, corrupt or
 //! mismatched checkpoints, unwritable folders) give one clear error naming the file.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Command, Stdio};
 
 mod common;
 
-fn example() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/example")
-}
-
-fn pii(args: &[&str]) -> std::process::Output {
-    assert_cmd::Command::cargo_bin("pii-bake")
-        .unwrap()
-        .env("XDG_RUNTIME_DIR", std::env::temp_dir())
-        .args(["--backend", "cpu"])
-        .args(args)
-        .output()
-        .unwrap()
-}
-
-fn text(o: &std::process::Output) -> String {
-    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
-}
+use common::{example, pii, text};
 
 const TINY: [&str; 8] = ["--rays", "96", "--downscale", "4", "--init", "sphere", "--seed", "5"];
 

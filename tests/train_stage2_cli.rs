@@ -4,27 +4,11 @@
 //! bad inputs (no stage-1 run, a run from another scene, a map that is not a latlong HDR, an
 //! unwritable folder) give one clear error naming the file.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 mod common;
 
-fn example() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/example")
-}
-
-fn pii(args: &[&str]) -> std::process::Output {
-    assert_cmd::Command::cargo_bin("pii-bake")
-        .unwrap()
-        .env("XDG_RUNTIME_DIR", std::env::temp_dir())
-        .args(["--backend", "cpu"])
-        .args(args)
-        .output()
-        .unwrap()
-}
-
-fn text(o: &std::process::Output) -> String {
-    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
-}
+use common::{example, pii, text};
 
 fn stage1(run: &Path) {
     let ex = example();

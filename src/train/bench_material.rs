@@ -9,7 +9,6 @@
 //! variant).
 
 use std::path::{Path, PathBuf};
-use std::time::Instant;
 
 use serde::Serialize;
 
@@ -98,9 +97,7 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
             copy_stage1(&args.run, &dir)?;
             ctx.say(format!("bench material: {variant}"));
             let opts = MaterialOptions { lobes: Some(k), indirect: mode, material_iterations: args.iterations, material_set: args.overrides.clone(), ..Default::default() };
-            let t = Instant::now();
             let r = train_stage2(&scene, args.preset, &opts, 0, &dir, false, None, &backend, ctx)?;
-            let wall = t.elapsed().as_secs_f64();
             let rep = &r.report;
             let f = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
             let cfg = r.trainer.cfg();
@@ -114,7 +111,7 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
                 seconds_train: f(&rep["seconds"]["train"]),
                 it_per_s: f(&rep["it_per_s"]),
                 cache_evaluations: f(&rep["cache"]["field_evaluations"]),
-                per_batch_evaluations: if mode == IndirectMode::None { 0.0 } else { (cfg.batch * cfg.secondary_steps) as f64 * k as f64 / 2.0 * r.trainer.step as f64 },
+                per_batch_evaluations: if mode == IndirectMode::None { 0.0 } else { (cfg.secondary_rays_per_batch() * cfg.secondary_steps) as f64 * r.trainer.step as f64 },
                 blocked_fraction: f(&rep["cache"]["blocked_fraction"]),
                 heldout_psnr: f(&rep["eval"]["psnr"]),
                 albedo_psnr: f64::NAN,
@@ -122,7 +119,6 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
                 roughness_mse: f64::NAN,
                 env_relative_l2: f64::NAN,
             };
-            let _ = wall;
             if has_gt && args.relight_views > 0 {
                 let rel = dir.join("relit");
                 let ra = super::relight::RelightArgs { run: dir.clone(), env: maps.clone(), cameras: None, out: rel.clone(), lobes: 32, convention: crate::sg::env::LatlongConvention::Blender, max_views: args.relight_views };

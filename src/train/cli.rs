@@ -139,8 +139,9 @@ pub fn interrupt_flag() -> Arc<AtomicBool> {
     .clone()
 }
 
-fn read_curve(path: &Path, upto: u64) -> Vec<String> {
-    crate::util::read_text_bounded(path, 256 << 20)
+/// The lines of a loss-curve CSV up to step `upto` (a resumed run keeps them), read within `max_bytes`.
+pub(crate) fn read_curve(path: &Path, upto: u64, max_bytes: u64) -> Vec<String> {
+    crate::util::read_text_bounded(path, max_bytes)
         .map(|s| {
             s.lines()
                 .skip(1)
@@ -158,13 +159,57 @@ fn curve_line(s: &StepStats, secs: f64) -> String {
     )
 }
 
-fn write_curve(dir: &Path, lines: &[String]) -> Result<(), DataError> {
-    let mut s = String::from("step,loss,rgb,eikonal,mask,psnr,surface_rays,mask_rays,alpha,lr,applied,seconds\n");
+/// Write a loss-curve CSV (`header` line, then `lines`) atomically.
+pub(crate) fn write_curve(path: &Path, header: &str, lines: &[String]) -> Result<(), DataError> {
+    let mut s = format!("{header}\n");
     for l in lines {
         s.push_str(l);
         s.push('\n');
     }
-    crate::util::atomic_write(&dir.join(LOSS_CURVE), s.as_bytes())
+    crate::util::atomic_write(path, s.as_bytes())
+}
+
+const CURVE_HEADER: &str = "step,loss,rgb,eikonal,mask,psnr,surface_rays,mask_rays,alpha,lr,applied,seconds";
+
+/// The training loop's progress bar (position, rate and ETA; the caller sets the message).
+pub(crate) fn training_progress(ctx: &Context, len: u64, label: &str) -> indicatif::ProgressBar {
+    let pb = ctx.progress(len, label);
+    if let Ok(style) = indicatif::ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {per_sec} eta {eta}") {
+        pb.set_style(style.progress_chars("=> "));
+    }
+    pb
+}
+
+/// Every `step`-th pixel of `camera` (row-major) so that at most `max_pixels` are rendered (0 =
+/// all): the rays and each one's pixel index in the full image.
+pub fn subsampled_rays(camera: &crate::scene::Camera, max_pixels: usize) -> (Rays, Vec<usize>) {
+    let c = camera;
+    let step = if max_pixels == 0 { 1 } else { (((c.width * c.height) as f64 / max_pixels as f64).sqrt().ceil() as usize).max(1) };
+    let mut rays = Rays::default();
+    let mut idx = Vec::new();
+    for y in (0..c.height).step_by(step) {
+        for x in (0..c.width).step_by(step) {
+            let (o, d) = c.ray(x as f64 + 0.5, y as f64 + 0.5);
+            rays.origins.push(o.as_vec3().to_array());
+            rays.dirs.push(d.as_vec3().to_array());
+            idx.push(y * c.width + x);
+        }
+    }
+    (rays, idx)
+}
+
+/// Squared sRGB error, summed over the channels, of a rendered colour at pixel `p` of the view's
+/// photo, when the pixel is on the photo's mask (no mask: every pixel).
+pub fn masked_srgb_error(v: &View, p: usize, col: [f32; 3]) -> Option<f64> {
+    let m = v.mask.as_ref().map(|m| m[p]).unwrap_or(1.0);
+    (m >= 0.5).then(|| {
+        (0..3)
+            .map(|ch| {
+                let gt = crate::image_io::linear_to_srgb(v.image.data[p * v.image.channels + ch].clamp(0.0, 1.0));
+                ((col[ch] - gt) as f64).powi(2)
+            })
+            .sum()
+    })
 }
 
 /// Train stage 1 on `scene_path` into `run_dir` (see the module docs).
@@ -229,7 +274,7 @@ pub fn train_stage1(
         if let Some(n) = opts.iterations {
             t.cfg.iterations = n;
         }
-        curve = read_curve(&run_dir.join(LOSS_CURVE), t.step);
+        curve = read_curve(&run_dir.join(LOSS_CURVE), t.step, 256 << 20);
         ctx.say(format!("resuming {} at step {} of {}", run_dir.display(), t.step, t.cfg.iterations));
         t
     } else {
@@ -280,10 +325,7 @@ pub fn train_stage1(
     ));
 
     let stop = interrupt_flag();
-    let pb = ctx.progress(cfg.iterations, "stage 1");
-    if let Ok(style) = indicatif::ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {per_sec} eta {eta}") {
-        pb.set_style(style.progress_chars("=> "));
-    }
+    let pb = training_progress(ctx, cfg.iterations, "stage 1");
     pb.set_position(trainer.step);
     let t_loop = Instant::now();
     let step0 = trainer.step;
@@ -301,7 +343,7 @@ pub fn train_stage1(
         let interrupted = stop.load(Ordering::SeqCst);
         if trainer.step % cfg.checkpoint_every == 0 || trainer.step == end || interrupted {
             trainer.save(run_dir, &key)?;
-            write_curve(run_dir, &curve)?;
+            write_curve(&run_dir.join(LOSS_CURVE), CURVE_HEADER, &curve)?;
         }
         if interrupted {
             pb.abandon();
@@ -318,7 +360,7 @@ pub fn train_stage1(
     pb.finish_and_clear();
     if trainer.step == step0 {
         trainer.save(run_dir, &key)?;
-        write_curve(run_dir, &curve)?;
+        write_curve(&run_dir.join(LOSS_CURVE), CURVE_HEADER, &curve)?;
     }
     let seconds_train = t_loop.elapsed().as_secs_f64();
     let its = (trainer.step - step0) as f64 / seconds_train.max(1e-9);
@@ -374,32 +416,17 @@ pub fn evaluate_views(backend: &Backend, model: &Model, tc: &TraceConfig, views:
     let mut out = ViewEval::default();
     let (mut se, mut w, mut inter, mut uni) = (0.0f64, 0.0f64, 0usize, 0usize);
     for v in views {
-        let c = &v.camera;
-        let step = (((c.width * c.height) as f64 / max_pixels as f64).sqrt().ceil() as usize).max(1);
-        let mut rays = Rays::default();
-        let mut idx = Vec::new();
-        for y in (0..c.height).step_by(step) {
-            for x in (0..c.width).step_by(step) {
-                let (o, d) = c.ray(x as f64 + 0.5, y as f64 + 0.5);
-                rays.origins.push(o.as_vec3().to_array());
-                rays.dirs.push(d.as_vec3().to_array());
-                idx.push(y * c.width + x);
-            }
-        }
+        let (rays, idx) = subsampled_rays(&v.camera, max_pixels);
         let img = render_rays(backend, model, tc, &rays)?;
         let (mut vse, mut vw, mut vi, mut vu) = (0.0f64, 0.0f64, 0usize, 0usize);
         for (k, &p) in idx.iter().enumerate() {
-            let m = v.mask.as_ref().map(|m| m[p]).unwrap_or(1.0);
-            let gt = [0, 1, 2].map(|ch| crate::image_io::linear_to_srgb(v.image.data[p * v.image.channels + ch].clamp(0.0, 1.0)));
             let (hit, col) = img[k];
-            let col = if hit { col } else { [0.0; 3] };
-            if m >= 0.5 {
-                for ch in 0..3 {
-                    vse += ((col[ch] - gt[ch]) as f64).powi(2);
-                }
+            let err = masked_srgb_error(v, p, if hit { col } else { [0.0; 3] });
+            if let Some(e) = err {
+                vse += e;
                 vw += 3.0;
             }
-            let inm = m >= 0.5;
+            let inm = err.is_some();
             vi += (hit && inm) as usize;
             vu += (hit || inm) as usize;
         }
@@ -679,17 +706,21 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
     let name = args.asset.name.clone().unwrap_or_else(|| super::preview::name_from_path(&args.scene));
     let mut stage2_report = serde_json::Value::Null;
     let mut seconds_stage2 = 0.0;
-    let t = Instant::now();
-    let report = if args.geometry_only {
-        export_stage1(&backend, &run.trainer, &run.run_scene, &args.asset, &name, ctx)?
+    let stage2 = if args.geometry_only {
+        None
     } else {
         let t2 = Instant::now();
         let r2 = super::material::train_stage2(&args.scene, preset, &args.material, args.train.seed, &run_dir, true, None, &backend, ctx)?;
         seconds_stage2 = t2.elapsed().as_secs_f64();
         stage2_report = r2.report.clone();
-        super::material::export_stage2(&backend, &run.trainer, &r2.trainer, &run.run_scene, &args.asset, &name, ctx)?
+        Some(r2.trainer)
     };
-    let seconds_export = t.elapsed().as_secs_f64() - seconds_stage2;
+    let t = Instant::now();
+    let report = match &stage2 {
+        None => export_stage1(&backend, &run.trainer, &run.run_scene, &args.asset, &name, ctx)?,
+        Some(s2) => super::material::export_stage2(&backend, &run.trainer, s2, &run.run_scene, &args.asset, &name, ctx)?,
+    };
+    let seconds_export = t.elapsed().as_secs_f64();
     let scene = crate::scene::load(&args.scene, &ReadOptions { downscale: args.train.downscale.max(1) })?;
     let gt = super::preview::ground_truth_metrics(
         &args.scene,

@@ -12,7 +12,7 @@ use anyhow::Context as _;
 use glam::DMat3;
 use rayon::prelude::*;
 
-use super::cli::{read_run_scene, train_views, RunScene, TrainedSdf};
+use super::cli::{masked_srgb_error, read_curve, read_run_scene, subsampled_rays, train_views, training_progress, write_curve, RunScene, TrainedSdf};
 use super::stage1::{scene_key, Model as Stage1Model, Preset, TrainData, Trainer, CHECKPOINT};
 use super::stage2::{shade_f64, DecoderMode, IndirectMode, Stage2Config, Stage2Model, Stage2Stats, Stage2Trainer, SurfaceCache, CHECKPOINT2};
 use crate::backend::{Backend, BackendError};
@@ -92,19 +92,7 @@ fn curve_line(s: &Stage2Stats, secs: f64) -> String {
     format!("{},{:.6},{:.6},{:.6},{:.6},{:.3},{},{},{:.4}", s.step, s.loss, s.rgb, s.smooth, s.kl, s.psnr, s.blocked, s.applied as u8, secs)
 }
 
-fn write_curve(dir: &Path, lines: &[String]) -> Result<(), DataError> {
-    let mut s = String::from("step,loss,rgb,smooth,kl,psnr,blocked,applied,seconds\n");
-    for l in lines {
-        s.push_str(l);
-        s.push('\n');
-    }
-    crate::util::atomic_write(&dir.join(CURVE2), s.as_bytes())
-}
-
-fn read_curve(path: &Path, upto: u64) -> Vec<String> {
-    let Ok(text) = crate::util::read_text_bounded(path, 64 << 20) else { return Vec::new() };
-    text.lines().skip(1).filter(|l| l.split(',').next().and_then(|s| s.parse::<u64>().ok()).is_some_and(|s| s <= upto)).map(str::to_string).collect()
-}
+const CURVE2_HEADER: &str = "step,loss,rgb,smooth,kl,psnr,blocked,applied,seconds";
 
 /// The stage-2 configuration for a scene and the options, with the reasons for its sizes.
 pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, opts: &MaterialOptions, seed: u64) -> anyhow::Result<(Stage2Config, serde_json::Value)> {
@@ -156,7 +144,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         if let Some(n) = opts.material_iterations {
             t.model.cfg.iterations = n;
         }
-        curve = read_curve(&run_dir.join(CURVE2), t.step);
+        curve = read_curve(&run_dir.join(CURVE2), t.step, 64 << 20);
         ctx.say(format!("resuming stage 2 in {} at step {} of {}", run_dir.display(), t.step, t.cfg().iterations));
         (t, traced)
     } else {
@@ -182,7 +170,6 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     }
     pb.finish_and_clear();
     let seconds_cache = tcache.elapsed().as_secs_f64();
-    let primary_evals = cache.evaluations;
     ctx.say(format!(
         "stage 2 ({} preset, indirect {}, {} decoder): {} lobes, {} cached surface points, {:.1}% of (point, lobe above the horizon) pairs blocked; cache traced once in {:.1} s ({} field evaluations) — without it every iteration would trace {} rays",
         cfg.preset.name(),
@@ -192,15 +179,12 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         cache.len(),
         100.0 * cache.blocked_fraction(),
         seconds_cache,
-        primary_evals,
-        cfg.batch * (cfg.lobes / 2 + 1)
+        cache.evaluations,
+        cfg.secondary_rays_per_batch()
     ));
 
     let stop = super::cli::interrupt_flag();
-    let pb = ctx.progress(cfg.iterations, "stage 2");
-    if let Ok(style) = indicatif::ProgressStyle::with_template("{msg} [{bar:30}] {pos}/{len} {per_sec} eta {eta}") {
-        pb.set_style(style.progress_chars("=> "));
-    }
+    let pb = training_progress(ctx, cfg.iterations, "stage 2");
     pb.set_position(trainer.step);
     let t_loop = Instant::now();
     let step0 = trainer.step;
@@ -222,7 +206,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         let interrupted = stop.load(Ordering::SeqCst);
         if trainer.step % cfg.checkpoint_every == 0 || trainer.step == end || interrupted {
             trainer.save(run_dir, &key, &cache.traced_axes)?;
-            write_curve(run_dir, &curve)?;
+            write_curve(&run_dir.join(CURVE2), CURVE2_HEADER, &curve)?;
         }
         if interrupted {
             pb.abandon();
@@ -239,7 +223,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     pb.finish_and_clear();
     if trainer.step == step0 {
         trainer.save(run_dir, &key, &cache.traced_axes)?;
-        write_curve(run_dir, &curve)?;
+        write_curve(&run_dir.join(CURVE2), CURVE2_HEADER, &curve)?;
     }
     let seconds_train = t_loop.elapsed().as_secs_f64();
     let its = (trainer.step - step0) as f64 / seconds_train.max(1e-9);
@@ -253,16 +237,10 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         let img = render_view(backend, sdf, tc, &trainer.model, &v.camera, 80 * 80, None)?;
         let (mut vse, mut vw) = (0.0, 0.0);
         for (k, &p) in img.pixel_index.iter().enumerate() {
-            let m = v.mask.as_ref().map(|m| m[p]).unwrap_or(1.0);
-            if m < 0.5 {
-                continue;
+            if let Some(e) = masked_srgb_error(v, p, img.rgb[k].map(crate::image_io::linear_to_srgb)) {
+                vse += e;
+                vw += 3.0;
             }
-            let col = img.rgb[k].map(crate::image_io::linear_to_srgb);
-            for ch in 0..3 {
-                let gt = crate::image_io::linear_to_srgb(v.image.data[p * v.image.channels + ch].clamp(0.0, 1.0));
-                vse += ((col[ch] - gt) as f64).powi(2);
-            }
-            vw += 3.0;
         }
         per_view.push(serde_json::json!({ "view": v.name, "psnr": crate::eval::psnr_from_mse(vse / f64::max(vw, 1.0)) }));
         se += vse;
@@ -297,7 +275,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "config": cfg,
         "sizes": { "lobes": cfg.lobes, "lobes_without_energy": idle, "points": cache.len(), "batch": cfg.batch, "parameters": trainer.model.num_params(), "why": why },
         "cache": { "points": cache.len(), "blocked_fraction": cache.blocked_fraction(), "field_evaluations": cache.evaluations, "seconds": seconds_cache, "lobes_retraced": cache.retraced, "seconds_retracing": retrace_s,
-                   "rays_per_iteration_without_cache": cfg.batch * cfg.lobes / 2 },
+                   "rays_per_iteration_without_cache": cfg.secondary_rays_per_batch() },
         "steps": trainer.step,
         "skipped_steps": trainer.skipped,
         "last": last,
@@ -343,17 +321,8 @@ pub struct RenderedView {
 /// or at full size with `max_pixels = 0`. `env`: another environment (normalised frame) to
 /// relight with; None = the learned one with the learned indirect light.
 pub fn render_view(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, model: &Stage2Model, camera: &Camera, max_pixels: usize, env: Option<&[Sg<f64>]>) -> Result<RenderedView, BackendError> {
-    let step = if max_pixels == 0 { 1 } else { (((camera.width * camera.height) as f64 / max_pixels as f64).sqrt().ceil() as usize).max(1) };
-    let mut out = RenderedView { width: camera.width, height: camera.height, ..Default::default() };
-    let mut rays = Rays::default();
-    for y in (0..camera.height).step_by(step) {
-        for x in (0..camera.width).step_by(step) {
-            let (o, d) = camera.ray(x as f64 + 0.5, y as f64 + 0.5);
-            rays.origins.push(o.as_vec3().to_array());
-            rays.dirs.push(d.as_vec3().to_array());
-            out.pixel_index.push(y * camera.width + x);
-        }
-    }
+    let (rays, pixel_index) = subsampled_rays(camera, max_pixels);
+    let mut out = RenderedView { width: camera.width, height: camera.height, pixel_index, ..Default::default() };
     let n = rays.len();
     out.hit = vec![false; n];
     out.rgb = vec![[0.0; 3]; n];
@@ -382,7 +351,7 @@ pub fn render_view(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, model
                 let all: Vec<usize> = (0..c.len()).collect();
                 super::stage2::render_points(backend, model, &c.batch(&all, cfg.lobes))?
             }
-            Some(lobes) => relight_points(backend, sdf, model, &model.cfg, &c, &albedo, &rough, lobes)?,
+            Some(lobes) => relight_points(backend, sdf, model, &c, &albedo, &rough, lobes)?,
         };
         for (k, &i) in idx.iter().enumerate() {
             let g = start + i;
@@ -399,10 +368,9 @@ pub fn render_view(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, model
 /// object is replaced by one-bounce light, the radiance the hit point x' (its learned material,
 /// lit by the same environment, unoccluded) sends back toward x, spread over the lobe's extent.
 #[allow(clippy::too_many_arguments)]
-fn relight_points(backend: &Backend, sdf: &Stage1Model, model: &Stage2Model, cfg: &Stage2Config, c: &SurfaceCache, albedo: &[[f32; 3]], rough: &[f32], lobes: &[Sg<f64>]) -> Result<Vec<[f32; 3]>, BackendError> {
-    let k = lobes.len();
-    let mut blocked: Vec<Vec<(usize, [f32; 3])>> = vec![Vec::new(); c.len()];
-    let (mut hx, mut hn, mut owner) = (Vec::new(), Vec::new(), Vec::new());
+fn relight_points(backend: &Backend, sdf: &Stage1Model, model: &Stage2Model, c: &SurfaceCache, albedo: &[[f32; 3]], rough: &[f32], lobes: &[Sg<f64>]) -> Result<Vec<[f32; 3]>, BackendError> {
+    let cfg = &model.cfg;
+    let (mut hx, mut owner) = (Vec::new(), Vec::new());
     for (j, l) in lobes.iter().enumerate() {
         let a = super::stage2::unit_f32(l.axis);
         let idx: Vec<usize> = (0..c.len()).filter(|&i| c.n[i][0] * a[0] + c.n[i][1] * a[1] + c.n[i][2] * a[2] > 0.0).collect();
@@ -416,24 +384,21 @@ fn relight_points(backend: &Backend, sdf: &Stage1Model, model: &Stage2Model, cfg
             }
         }
     }
-    if !hx.is_empty() {
-        hn = super::stage2::normals_at(backend, sdf, &hx, super::stage2::normal_step(sdf, cfg))?;
-    }
+    let hn = super::stage2::normals_at(backend, sdf, &hx, super::stage2::normal_step(sdf, cfg))?;
     let (ha, hr) = model.material(backend, &hx)?;
     let bounce: Vec<[f32; 3]> = (0..hx.len())
         .into_par_iter()
         .map(|h| {
-            let (i, j) = owner[h];
-            let _ = i;
+            let j = owner[h].1;
             let v = super::stage2::unit_f32(lobes[j].axis).map(|x| -x as f64);
             let (sp, df) = shade_f64(ha[h].map(f64::from), hr[h] as f64, hn[h].map(f64::from), v, lobes);
             [0, 1, 2].map(|ch| (sp[ch].max(0.0) + df[ch].max(0.0)) as f32)
         })
         .collect();
+    let mut blocked: Vec<Vec<(usize, [f32; 3])>> = vec![Vec::new(); c.len()];
     for (h, &(i, j)) in owner.iter().enumerate() {
         blocked[i].push((j, bounce[h]));
     }
-    let _ = k;
     Ok((0..c.len())
         .into_par_iter()
         .map(|i| {

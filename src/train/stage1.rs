@@ -271,6 +271,14 @@ impl Stage1Config {
 
 /// `KEY=VALUE` overrides of top-level config fields (VALUE parsed as JSON, else a string).
 pub fn apply_overrides(cfg: Stage1Config, overrides: &[String]) -> Result<Stage1Config, BackendError> {
+    let out = override_fields(cfg, overrides)?;
+    out.validate()?;
+    Ok(out)
+}
+
+/// `KEY=VALUE` overrides of any serialisable config's top-level fields (VALUE parsed as JSON, else
+/// a string); the caller validates the result.
+pub fn override_fields<C: Serialize + serde::de::DeserializeOwned>(cfg: C, overrides: &[String]) -> Result<C, BackendError> {
     if overrides.is_empty() {
         return Ok(cfg);
     }
@@ -282,9 +290,7 @@ pub fn apply_overrides(cfg: Stage1Config, overrides: &[String]) -> Result<Stage1
         let slot = v.get_mut(k).ok_or_else(|| BackendError::Config(format!("override {o:?}: no setting named {k:?}")))?;
         *slot = serde_json::from_str(val).unwrap_or_else(|_| serde_json::Value::String(val.to_string()));
     }
-    let out: Stage1Config = serde_json::from_value(v).map_err(|e| BackendError::Config(format!("overrides {overrides:?}: {e}")))?;
-    out.validate()?;
-    Ok(out)
+    serde_json::from_value(v).map_err(|e| BackendError::Config(format!("overrides {overrides:?}: {e}")))
 }
 
 /// Mean photo pixel footprint (normalised units) at the distance of the scene centre.
@@ -867,16 +873,8 @@ impl Trainer {
             }
         }
         let mut t = Trainer::new(cfg).map_err(|e| DataError::new(&path, e.to_string()))?;
-        let get = |name: &str, len: usize| -> Result<Vec<f32>, DataError> {
-            let d = st.data(name).ok_or_else(|| DataError::new(&path, format!("checkpoint lacks tensor {name:?}")))?;
-            if d.len() != len {
-                return Err(DataError::new(&path, format!("tensor {name:?} has {} values; this run's {} network needs {len} (a checkpoint from another preset or version?)", d.len(), t.cfg.preset.name())));
-            }
-            if d.iter().any(|v| !v.is_finite()) {
-                return Err(DataError::new(&path, format!("tensor {name:?} holds NaN/Inf values")));
-            }
-            Ok(d.to_vec())
-        };
+        let needs = format!("this run's {} network needs", t.cfg.preset.name());
+        let get = |name: &str, len: usize| checked_tensor(&st, &path, name, len, &needs, " (a checkpoint from another preset or version?)");
         t.model.sdf_params = get("sdf", t.model.sdf_params.len())?;
         t.model.radiance_params = get("radiance", t.model.radiance_params.len())?;
         let host = t.host.clone();
@@ -894,8 +892,21 @@ impl Trainer {
     }
 }
 
+/// A checkpoint tensor that must exist, hold `len` values and be finite; the errors name the file
+/// (`needs`/`hint` word the length mismatch for the caller's model).
+pub(crate) fn checked_tensor(st: &ParamStore, path: &Path, name: &str, len: usize, needs: &str, hint: &str) -> Result<Vec<f32>, DataError> {
+    let d = st.data(name).ok_or_else(|| DataError::new(path, format!("checkpoint lacks tensor {name:?}")))?;
+    if d.len() != len {
+        return Err(DataError::new(path, format!("tensor {name:?} has {} values; {needs} {len}{hint}", d.len())));
+    }
+    if d.iter().any(|v| !v.is_finite()) {
+        return Err(DataError::new(path, format!("tensor {name:?} holds NaN/Inf values")));
+    }
+    Ok(d.to_vec())
+}
+
 /// One Adam step on a host parameter vector.
-fn adam_host(host: &Backend, cfg: &AdamConfig, params: &mut Vec<f32>, grads: Vec<f32>, state: &mut AdamState, lr: f32) -> Result<(), BackendError> {
+pub(crate) fn adam_host(host: &Backend, cfg: &AdamConfig, params: &mut Vec<f32>, grads: Vec<f32>, state: &mut AdamState, lr: f32) -> Result<(), BackendError> {
     let mut p = host.from_vec(std::mem::take(params));
     let r = host.adam_step_group(cfg, &mut [AdamItem { params: &mut p, grads: &host.from_vec(grads), state }], lr);
     if let crate::backend::Tensor::Host(v) = p {

@@ -31,9 +31,9 @@ use rand::Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::stage1::{Model as Stage1Model, Preset, TrainData};
+use super::stage1::{adam_host, checked_tensor, Model as Stage1Model, Preset, TrainData};
 use crate::backend::{Backend, BackendError};
-use crate::nn::adam::{AdamConfig, AdamItem, AdamState};
+use crate::nn::adam::{AdamConfig, AdamState};
 use crate::nn::encoding::{encoding_forward_cpu, EncodingConfig};
 use crate::nn::mlp::{Activation, Init, Mlp, MlpConfig};
 use crate::nn::params::ParamStore;
@@ -174,6 +174,12 @@ impl Stage2Config {
         Ok(())
     }
 
+    /// Secondary rays one batch would trace without the cache (about half the lobes are above a
+    /// point's horizon).
+    pub fn secondary_rays_per_batch(&self) -> usize {
+        self.batch * self.lobes / 2
+    }
+
     pub fn lr_factor(&self, step: u64) -> f32 {
         (self.lr_final_factor as f64).powf(step as f64 / self.iterations.max(1) as f64) as f32
     }
@@ -229,39 +235,15 @@ impl Stage2Config {
 
 /// Apply `KEY=VALUE` overrides (any field of [`Stage2Config`], JSON values).
 pub fn apply_overrides(cfg: Stage2Config, overrides: &[String]) -> Result<Stage2Config, BackendError> {
-    let mut v = serde_json::to_value(&cfg).map_err(|e| BackendError::Config(e.to_string()))?;
-    for o in overrides {
-        let (k, val) = o.split_once('=').ok_or_else(|| BackendError::Config(format!("override {o:?} is not KEY=VALUE")))?;
-        let obj = v.as_object_mut().ok_or_else(|| BackendError::Config("config is not an object".into()))?;
-        if !obj.contains_key(k) {
-            return Err(BackendError::Config(format!("stage 2 has no setting {k:?}")));
-        }
-        let parsed = serde_json::from_str(val).unwrap_or(serde_json::Value::String(val.to_string()));
-        obj.insert(k.to_string(), parsed);
-    }
-    let c: Stage2Config = serde_json::from_value(v).map_err(|e| BackendError::Config(format!("override: {e}")))?;
+    let c = super::stage1::override_fields(cfg, overrides)?;
     c.validate()?;
     Ok(c)
 }
 
-/// `n` unit vectors on a Fibonacci sphere.
-pub fn fibonacci_sphere(n: usize) -> Vec<[f32; 3]> {
-    let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
-    (0..n)
-        .map(|i| {
-            let y = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
-            let r = (1.0 - y * y).max(0.0).sqrt();
-            let th = golden * i as f64;
-            [(th.cos() * r) as f32, y as f32, (th.sin() * r) as f32]
-        })
-        .collect()
-}
-
-/// A standard normal draw (Box–Muller).
+/// A standard normal draw.
 pub fn normal(rng: &mut impl Rng) -> f64 {
-    let u1: f64 = rng.random_range(1e-12..1.0);
-    let u2: f64 = rng.random_range(0.0..1.0);
-    (-2.0 * u1.ln()).sqrt() * (2.0 * std::f64::consts::PI * u2).cos()
+    use rand_distr::{Distribution, StandardNormal};
+    StandardNormal.sample(rng)
 }
 
 /// Parameters per lobe in the light tensor.
@@ -270,7 +252,7 @@ pub const LIGHT_STRIDE: usize = 7;
 /// The initial light: Fibonacci axes, λ = 10 + |20·N(0,1)|, white amplitudes with total energy 0.8·2π.
 pub fn init_light(k: usize, seed: u64) -> Vec<f32> {
     let mut rng = crate::util::rng(seed ^ 0x5EED_0002);
-    let axes = fibonacci_sphere(k);
+    let axes = crate::sg::fit::fibonacci_sphere(k);
     let lambdas: Vec<f64> = (0..k).map(|_| 10.0 + (20.0 * normal(&mut rng)).abs()).collect();
     let energy: f64 = lambdas.iter().map(|&l| 2.0 * std::f64::consts::PI / l * (1.0 - (-2.0 * l).exp())).sum();
     let mu = 0.8 * 2.0 * std::f64::consts::PI / energy;
@@ -1024,14 +1006,14 @@ impl Stage2Trainer {
         let (lm, ll, li) = (self.cfg().lr_material * f, self.cfg().lr_light * f, self.cfg().lr_indirect * f);
         let cfg = AdamConfig { eps: 1e-15, ..AdamConfig::with_lr(lm) };
         let h = self.host.clone();
-        step_host(&h, &cfg, &mut self.model.enc_params, g.d_enc, &mut self.adam_enc, lm)?;
+        adam_host(&h, &cfg, &mut self.model.enc_params, g.d_enc, &mut self.adam_enc, lm)?;
         for ((p, d), s) in self.model.dec_params.iter_mut().zip(g.d_dec).zip(&mut self.adam_dec) {
-            step_host(&h, &cfg, p, d, s, lm)?;
+            adam_host(&h, &cfg, p, d, s, lm)?;
         }
         // Per-entry learning rate for the axes: Adam's moments do not depend on the rate, so
         // scaling the axes' update is a step at `ll · axis_lr_factor`.
         let before = self.model.light.clone();
-        step_host(&h, &cfg, &mut self.model.light, g.d_light, &mut self.adam_light, ll)?;
+        adam_host(&h, &cfg, &mut self.model.light, g.d_light, &mut self.adam_light, ll)?;
         let fa = self.cfg().axis_lr_factor;
         for (p, b) in self.model.light.chunks_exact_mut(LIGHT_STRIDE).zip(before.chunks_exact(LIGHT_STRIDE)) {
             for a in 0..3 {
@@ -1039,7 +1021,7 @@ impl Stage2Trainer {
             }
         }
         if self.cfg().indirect == IndirectMode::Ours {
-            step_host(&h, &cfg, &mut self.model.ind_params, g.d_ind, &mut self.adam_ind, li)?;
+            adam_host(&h, &cfg, &mut self.model.ind_params, g.d_ind, &mut self.adam_ind, li)?;
         }
         Ok((true, norm2.sqrt()))
     }
@@ -1104,16 +1086,7 @@ impl Stage2Trainer {
             }
         }
         let mut t = Stage2Trainer::new(&cfg).map_err(|e| DataError::new(&path, e.to_string()))?;
-        let get = |name: &str, len: usize| -> Result<Vec<f32>, DataError> {
-            let d = st.data(name).ok_or_else(|| DataError::new(&path, format!("checkpoint lacks tensor {name:?}")))?;
-            if d.len() != len {
-                return Err(DataError::new(&path, format!("tensor {name:?} has {} values; this configuration needs {len}", d.len())));
-            }
-            if d.iter().any(|v| !v.is_finite()) {
-                return Err(DataError::new(&path, format!("tensor {name:?} holds NaN/Inf values")));
-            }
-            Ok(d.to_vec())
-        };
+        let get = |name: &str, len: usize| checked_tensor(&st, &path, name, len, "this configuration needs", "");
         t.model.enc_params = get("encoder", t.model.enc_params.len())?;
         for i in 0..t.model.dec_params.len() {
             t.model.dec_params[i] = get(&format!("decoder{i}"), t.model.dec_params[i].len())?;
@@ -1142,15 +1115,6 @@ impl Stage2Trainer {
         t.skipped = st.metadata.get("skipped").and_then(|s| s.parse().ok()).unwrap_or(0);
         Ok((t, scene, traced))
     }
-}
-
-fn step_host(host: &Backend, cfg: &AdamConfig, params: &mut Vec<f32>, grads: Vec<f32>, state: &mut AdamState, lr: f32) -> Result<(), BackendError> {
-    let mut p = host.from_vec(std::mem::take(params));
-    let r = host.adam_step_group(cfg, &mut [AdamItem { params: &mut p, grads: &host.from_vec(grads), state }], lr);
-    if let crate::backend::Tensor::Host(v) = p {
-        *params = v;
-    }
-    r.map(|_| ())
 }
 
 /// Render cached-style points (forward): linear RGB per point, given per-point blocked lobes.

@@ -45,3 +45,24 @@ pub fn assert_usd_valid(usds: &[PathBuf]) {
     assert!(ok, "USD validation: {text}");
     assert_eq!(text.lines().filter(|l| l.contains("\"errors\": 0")).count(), usds.len(), "{text}");
 }
+
+/// The bundled example scene.
+pub fn example() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/example")
+}
+
+/// Run the `pii-bake` binary on the cpu backend.
+pub fn pii(args: &[&str]) -> std::process::Output {
+    assert_cmd::Command::cargo_bin("pii-bake")
+        .unwrap()
+        .env("XDG_RUNTIME_DIR", std::env::temp_dir())
+        .args(["--backend", "cpu"])
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+/// A command's stdout + stderr.
+pub fn text(o: &std::process::Output) -> String {
+    format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
+}
