@@ -94,6 +94,12 @@ pub struct Camera {
 }
 
 impl Camera {
+    /// The same camera with `s`× the pixels per axis (each pixel split into s×s sub-pixels).
+    pub fn supersampled(&self, s: usize) -> Camera {
+        let f = s.max(1) as f64;
+        Camera { width: self.width * s.max(1), height: self.height * s.max(1), fx: self.fx * f, fy: self.fy * f, cx: self.cx * f, cy: self.cy * f, ..self.clone() }
+    }
+
     /// Camera centre in the normalised world.
     pub fn center(&self) -> DVec3 {
         self.world_from_camera.w_axis.truncate()

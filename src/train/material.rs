@@ -14,7 +14,7 @@ use rayon::prelude::*;
 
 use super::cli::{masked_srgb_error, read_curve, read_run_scene, subsampled_rays, train_views, training_progress, write_curve, RunScene, TrainedSdf};
 use super::stage1::{scene_key, Model as Stage1Model, Preset, TrainData, Trainer, CHECKPOINT};
-use super::stage2::{shade_f64, DecoderMode, IndirectMode, Stage2Config, Stage2Model, Stage2Stats, Stage2Trainer, SurfaceCache, CHECKPOINT2};
+use super::stage2::{shade_f64, DecoderMode, IndirectMode, RoughnessMode, Stage2Config, Stage2Model, Stage2Stats, Stage2Trainer, SurfaceCache, CHECKPOINT2};
 use crate::backend::{Backend, BackendError};
 use crate::context::Context;
 use crate::export::{AssetArgs, ExportConfig, ExportReport};
@@ -39,6 +39,10 @@ pub struct MaterialOptions {
     /// real captures).
     #[arg(long, value_enum)]
     pub decoder: Option<DecoderMode>,
+    /// Roughness: `field` (per point, the paper's) or `constant` (one learned value for the object,
+    /// the PhySG-like baseline's).
+    #[arg(long, value_enum, default_value_t = RoughnessMode::Field)]
+    pub roughness: RoughnessMode,
     /// Stage-2 iterations (default: the preset's).
     #[arg(long)]
     pub material_iterations: Option<u64>,
@@ -52,7 +56,7 @@ pub struct MaterialOptions {
 
 impl Default for MaterialOptions {
     fn default() -> Self {
-        Self { lobes: None, indirect: IndirectMode::Ours, decoder: None, material_iterations: None, material_batch: None, material_set: Vec::new() }
+        Self { lobes: None, indirect: IndirectMode::Ours, decoder: None, roughness: RoughnessMode::Field, material_iterations: None, material_batch: None, material_set: Vec::new() }
     }
 }
 
@@ -99,6 +103,7 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, opts: &Ma
     let mut cfg = Stage2Config::new(preset, data.foreground_pixels());
     cfg.seed = seed;
     cfg.indirect = opts.indirect;
+    cfg.roughness = opts.roughness;
     let synthetic = matches!(format, Format::Transforms);
     cfg.decoder = opts.decoder.unwrap_or(if synthetic { DecoderMode::Separate } else { DecoderMode::Shared });
     if let Some(k) = opts.lobes {

@@ -51,6 +51,10 @@ pub struct RelightArgs {
     /// Render at most this many views (0 = all test views).
     #[arg(long, default_value_t = 0)]
     pub max_views: usize,
+    /// Sub-pixels per axis: each pixel averages s×s camera rays (straight alpha = the covered
+    /// fraction, colour = the mean over covered sub-pixels), as a renderer's pixel filter does.
+    #[arg(long, default_value_t = 2)]
+    pub samples: usize,
 }
 
 /// The run folder behind a run-or-asset path.
@@ -67,17 +71,31 @@ fn resolve_run(p: &Path) -> Result<PathBuf, DataError> {
     Err(DataError::new(p, "no stage-2 run here (expected material.safetensors, or run/material.safetensors in a bake's asset folder): train it with `pii-bake train <scene> --out <run> --stage all`"))
 }
 
-fn write_view(path: &Path, img: &RenderedView, value: impl Fn(usize) -> [f32; 3], srgb: bool) -> Result<(), DataError> {
-    let (w, h) = (img.width, img.height);
-    let mut data = vec![0.0f32; w * h * 4];
+/// Write a view rendered at `s`× the pixels per axis (every pixel rendered) as a straight-alpha
+/// RGBA image: alpha = covered fraction of each pixel's s×s sub-pixels, colour = their mean value.
+fn write_view(path: &Path, img: &RenderedView, s: usize, value: impl Fn(usize) -> [f32; 3], srgb: bool) -> Result<(), DataError> {
+    let (w, h) = (img.width / s, img.height / s);
+    let mut sum = vec![0.0f32; w * h * 4];
     for (k, &p) in img.pixel_index.iter().enumerate() {
         if img.hit[k] {
+            let (x, y) = (p % img.width / s, p / img.width / s);
+            let o = 4 * (y * w + x);
             let c = value(k);
-            data[4 * p..4 * p + 3].copy_from_slice(&c.map(|v| v.clamp(0.0, 1.0)));
-            data[4 * p + 3] = 1.0;
+            for i in 0..3 {
+                sum[o + i] += c[i].clamp(0.0, 1.0);
+            }
+            sum[o + 3] += 1.0;
         }
     }
-    crate::image_io::write_png8(path, w, h, 4, &data, srgb)
+    let covered = (s * s) as f32;
+    for px in sum.chunks_exact_mut(4) {
+        if px[3] > 0.0 {
+            let n = px[3];
+            px[..3].iter_mut().for_each(|v| *v /= n);
+            px[3] = n / covered;
+        }
+    }
+    crate::image_io::write_png8(path, w, h, 4, &sum, srgb)
 }
 
 pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
@@ -91,6 +109,10 @@ pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
     if args.lobes == 0 || args.lobes > 512 {
         anyhow::bail!("--lobes must be in 1..=512");
     }
+    if args.samples == 0 || args.samples > 8 {
+        anyhow::bail!("--samples must be in 1..=8");
+    }
+    let ss = args.samples;
     // Fit every map first: a bad map fails before any rendering.
     let backend = ctx.backend()?;
     let mut maps: Vec<(String, Vec<Sg<f64>>, f64)> = Vec::new();
@@ -131,15 +153,16 @@ pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
     let pb = ctx.progress((views.len() * (1 + maps.len())) as u64, "relight");
     let mut n = 0;
     for v in &views {
-        let img = render_view(&backend, sdf, tc, &s2.model, &v.camera, 0, None)?;
-        write_view(&test.join(format!("{}.png", v.name)), &img, |k| img.rgb[k], true)?;
-        write_view(&test.join(format!("{}_albedo.png", v.name)), &img, |k| img.albedo[k], true)?;
-        write_view(&test.join(format!("{}_roughness.png", v.name)), &img, |k| [img.roughness[k]; 3], false)?;
+        let cam = v.camera.supersampled(ss);
+        let img = render_view(&backend, sdf, tc, &s2.model, &cam, 0, None)?;
+        write_view(&test.join(format!("{}.png", v.name)), &img, ss, |k| img.rgb[k], true)?;
+        write_view(&test.join(format!("{}_albedo.png", v.name)), &img, ss, |k| img.albedo[k], true)?;
+        write_view(&test.join(format!("{}_roughness.png", v.name)), &img, ss, |k| [img.roughness[k]; 3], false)?;
         n += 1;
         pb.set_position(n);
         for (stem, lobes, _) in &maps {
-            let r = render_view(&backend, sdf, tc, &s2.model, &v.camera, 0, Some(lobes))?;
-            write_view(&test.join(format!("{}_relit_{stem}.png", v.name)), &r, |k| r.rgb[k], true)?;
+            let r = render_view(&backend, sdf, tc, &s2.model, &cam, 0, Some(lobes))?;
+            write_view(&test.join(format!("{}_relit_{stem}.png", v.name)), &r, ss, |k| r.rgb[k], true)?;
             n += 1;
             pb.set_position(n);
         }
@@ -152,6 +175,7 @@ pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
         "views": views.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
         "maps": maps.iter().map(|(s, l, t)| serde_json::json!({ "name": s, "lobes": l.len(), "fit_seconds": t })).collect::<Vec<_>>(),
         "convention": args.convention,
+        "samples_per_pixel": ss * ss,
         "indirect": "one bounce: a blocked lobe is replaced by the learned material at the secondary hit lit by the same map",
         "seconds": t_total.elapsed().as_secs_f64(),
     });

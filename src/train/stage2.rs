@@ -35,6 +35,7 @@ use super::stage1::{adam_host, checked_tensor, Model as Stage1Model, Preset, Tra
 use crate::backend::{Backend, BackendError};
 use crate::nn::adam::{AdamConfig, AdamState};
 use crate::nn::encoding::{encoding_forward_cpu, EncodingConfig};
+use crate::nn::field::{Encoder, FieldEncoding, PositionEncoder};
 use crate::nn::mlp::{Activation, Init, Mlp, MlpConfig};
 use crate::nn::params::ParamStore;
 use crate::render::{trace, trace_secondary, Rays, TraceConfig};
@@ -74,6 +75,23 @@ pub enum DecoderMode {
     Shared,
 }
 
+/// Where roughness comes from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, clap::ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum RoughnessMode {
+    /// The material field's: one roughness per surface point.
+    #[default]
+    Field,
+    /// One learned roughness for the whole object (PhySG-like baselines): the roughness decoder's
+    /// output at a fixed latent (every entry [`CONSTANT_LATENT`]), so it needs no parameters of its
+    /// own.
+    Constant,
+}
+
+/// The latent entries the roughness decoder reads under [`RoughnessMode::Constant`] (not 0: with
+/// zero biases every first-layer unit would sit on LeakyReLU's kink).
+pub const CONSTANT_LATENT: f32 = 0.5;
+
 /// Stage-2 configuration: sizes, weights, learning rates.
 #[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
 pub struct Stage2Config {
@@ -81,8 +99,15 @@ pub struct Stage2Config {
     pub lobes: usize,
     pub indirect: IndirectMode,
     pub decoder: DecoderMode,
+    #[serde(default)]
+    pub roughness: RoughnessMode,
+    /// Frequencies of the PE of x' fed to F_ind (and of x where the material uses PE).
     pub pos_freqs: u32,
     pub dir_freqs: u32,
+    /// The material field's position encoding: the paper's `PE(pos_freqs)` or a hash grid sized
+    /// from the scene's pixel footprint (as stage 1's). See [`Stage2Config::with_material_grid`].
+    #[serde(default = "default_material_encoding")]
+    pub material_encoding: FieldEncoding,
     pub material_widths: Vec<usize>,
     pub latent_dim: usize,
     pub decoder_widths: Vec<usize>,
@@ -120,16 +145,18 @@ impl Stage2Config {
     /// holds more points than there are pixels to explain).
     pub fn new(preset: Preset, foreground_pixels: usize) -> Self {
         let (lobes, widths, ind, points, batch, iterations) = match preset {
-            Preset::Fast => (32, vec![128; 3], vec![128; 2], 32_768, 1024, 1200),
-            Preset::Paper => (128, vec![256; 3], vec![512; 4], 65_536, 2048, 3000),
+            Preset::Fast => (32, vec![128; 3], vec![128; 2], 131_072, 1024, 1200),
+            Preset::Paper => (128, vec![256; 3], vec![512; 4], 262_144, 2048, 3000),
         };
         Self {
             preset,
             lobes,
             indirect: IndirectMode::Ours,
             decoder: DecoderMode::Separate,
+            roughness: RoughnessMode::Field,
             pos_freqs: 10,
             dir_freqs: 4,
+            material_encoding: default_material_encoding(),
             material_widths: widths,
             latent_dim: 32,
             decoder_widths: vec![64],
@@ -149,7 +176,7 @@ impl Stage2Config {
             secondary_offset: 0.01,
             secondary_steps: 10,
             secondary_threshold: 5e-4,
-            retrace_degrees: 3.0,
+            retrace_degrees: 8.0,
             normal_step_factor: 1.0,
             seed: 0,
             checkpoint_every: 100,
@@ -184,6 +211,31 @@ impl Stage2Config {
         (self.lr_final_factor as f64).powf(step as f64 / self.iterations.max(1) as f64) as f32
     }
 
+    /// The material field gets a hash grid with `finest` cells per axis over `[-1, 1]^3` and
+    /// `2^log2_table` entries per level (stage 1's sizes for the scene), 16 levels × 2 features,
+    /// base 16, fed beside the raw position.
+    pub fn with_material_grid(mut self, finest: u32, log2_table: u32) -> Self {
+        let (levels, base) = (16usize, 16u32);
+        self.material_encoding = FieldEncoding::HashGrid {
+            levels,
+            features_per_level: 2,
+            log2_table_size: log2_table,
+            base_resolution: base,
+            growth: ((finest.max(base + 1) as f32 / base as f32).ln() / (levels - 1) as f32).exp(),
+        };
+        self
+    }
+
+    /// The material field's position encoder.
+    pub fn material_encoder(&self) -> PositionEncoder {
+        match self.material_encoding {
+            FieldEncoding::Frequency { n_freqs } => {
+                PositionEncoder { encoding: EncodingConfig::frequency(n_freqs as u32), raw_xyz: false, active_levels: None }
+            }
+            FieldEncoding::HashGrid { .. } => self.material_encoding.encoder(),
+        }
+    }
+
     fn pos_encoding(&self) -> EncodingConfig {
         EncodingConfig::frequency(self.pos_freqs)
     }
@@ -193,7 +245,7 @@ impl Stage2Config {
 
     pub fn encoder_mlp(&self) -> MlpConfig {
         MlpConfig {
-            in_dim: self.pos_encoding().out_dim(3),
+            in_dim: self.material_encoder().out_dim(),
             widths: self.material_widths.clone(),
             out_dim: self.latent_dim,
             activation: Activation::LeakyRelu(0.2),
@@ -238,6 +290,10 @@ pub fn apply_overrides(cfg: Stage2Config, overrides: &[String]) -> Result<Stage2
     let c = super::stage1::override_fields(cfg, overrides)?;
     c.validate()?;
     Ok(c)
+}
+
+fn default_material_encoding() -> FieldEncoding {
+    FieldEncoding::Frequency { n_freqs: 10 }
 }
 
 /// A standard normal draw.
@@ -312,6 +368,9 @@ fn srgb_with_derivative(x: f64) -> (f64, f64) {
 #[derive(Clone, Debug)]
 pub struct Stage2Model {
     pub cfg: Stage2Config,
+    /// The material field's position encoder; its parameters (a hash grid's tables, or none)
+    /// lead `enc_params`, the encoder MLP's follow.
+    pub mat_enc: PositionEncoder,
     pub encoder: Mlp,
     pub decoders: Vec<(Mlp, usize)>,
     pub indirect: Mlp,
@@ -324,14 +383,17 @@ pub struct Stage2Model {
 impl Stage2Model {
     pub fn new(cfg: &Stage2Config) -> Result<Self, BackendError> {
         cfg.validate()?;
+        let mat_enc = cfg.material_encoder();
+        mat_enc.encoding.validate(3)?;
         let encoder = Mlp::new(cfg.encoder_mlp())?;
         let decoders: Vec<(Mlp, usize)> = cfg.decoder_mlps().into_iter().map(|(c, o)| Mlp::new(c).map(|m| (m, o))).collect::<Result<_, _>>()?;
         let indirect = Mlp::new(cfg.indirect_mlp())?;
-        let enc_params = encoder.init(Init::Default, cfg.seed.wrapping_add(101));
+        let mut enc_params = mat_enc.init(cfg.seed.wrapping_add(100));
+        enc_params.extend(encoder.init(Init::Default, cfg.seed.wrapping_add(101)));
         let dec_params = decoders.iter().enumerate().map(|(i, (m, _))| m.init(Init::Default, cfg.seed.wrapping_add(202 + i as u64))).collect();
         let ind_params = indirect.init(Init::Default, cfg.seed.wrapping_add(303));
         let light = init_light(cfg.lobes, cfg.seed);
-        Ok(Self { cfg: cfg.clone(), encoder, decoders, indirect, enc_params, dec_params, light, ind_params })
+        Ok(Self { cfg: cfg.clone(), mat_enc, encoder, decoders, indirect, enc_params, dec_params, light, ind_params })
     }
 
     pub fn num_params(&self) -> usize {
@@ -365,13 +427,42 @@ impl Stage2Model {
         encoding_forward_cpu(&self.cfg.pos_encoding(), &[], bytemuck::cast_slice(x), 3)
     }
 
+    /// `enc_params` split into (position encoder, encoder MLP).
+    fn enc_split(&self) -> (&[f32], &[f32]) {
+        self.enc_params.split_at(self.mat_enc.num_params())
+    }
+
+    fn encode_material(&self, x: &[[f32; 3]]) -> Vec<f32> {
+        self.mat_enc.forward(self.enc_split().0, bytemuck::cast_slice(x))
+    }
+
+    /// The decoder that writes roughness and the column it writes it to.
+    fn roughness_decoder(&self) -> (usize, usize) {
+        let i = self.decoders.iter().position(|(m, o)| (*o..*o + m.out_dim()).contains(&3)).unwrap_or(0);
+        (i, 3 - self.decoders[i].1)
+    }
+
+    /// With [`RoughnessMode::Constant`]: the object's roughness (the roughness decoder at the fixed
+    /// latent)
+    /// and that forward pass (kept for the backward).
+    fn constant_roughness(&self, backend: &Backend, train: bool) -> Result<Option<(f32, crate::nn::mlp::MlpForward)>, BackendError> {
+        if self.cfg.roughness != RoughnessMode::Constant {
+            return Ok(None);
+        }
+        let (i, col) = self.roughness_decoder();
+        let (m, _) = &self.decoders[i];
+        let f = backend.mlp_forward(m, &backend.upload(&self.dec_params[i]), &backend.from_vec(vec![CONSTANT_LATENT; self.cfg.latent_dim]), train)?;
+        let r = backend.to_vec(&f.output)?[col];
+        Ok(Some((r, f)))
+    }
+
     /// Albedo (linear, [0, 1]) and roughness at points: forward only, in chunks.
     pub fn material(&self, backend: &Backend, x: &[[f32; 3]]) -> Result<(Vec<[f32; 3]>, Vec<f32>), BackendError> {
         let mut albedo = Vec::with_capacity(x.len());
         let mut rough = Vec::with_capacity(x.len());
         for c in x.chunks(1 << 14) {
-            let enc = self.encode_pos(c);
-            let z = backend.mlp_forward(&self.encoder, &backend.upload(&self.enc_params), &backend.from_vec(enc), false)?;
+            let enc = self.encode_material(c);
+            let z = backend.mlp_forward(&self.encoder, &backend.upload(self.enc_split().1), &backend.from_vec(enc), false)?;
             let mut mat = vec![0.0f32; c.len() * 4];
             for ((m, o), p) in self.decoders.iter().zip(&self.dec_params) {
                 let out = backend.to_vec(&backend.mlp_forward(m, &backend.upload(p), &z.output, false)?.output)?;
@@ -380,9 +471,10 @@ impl Stage2Model {
                     mat[4 * i + o..4 * i + o + od].copy_from_slice(&out[od * i..od * (i + 1)]);
                 }
             }
+            let constant = self.constant_roughness(backend, false)?.map(|(r, _)| r);
             for m in mat.chunks_exact(4) {
                 albedo.push([m[0], m[1], m[2]]);
-                rough.push(m[3]);
+                rough.push(constant.unwrap_or(m[3]));
             }
         }
         Ok((albedo, rough))
@@ -556,8 +648,8 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
         return Err(BackendError::Shape("stage 2: empty batch".into()));
     }
     // Material: encoder → latent → decoders, on z and on z + ε.
-    let enc_p = backend.upload(&model.enc_params);
-    let zf = backend.mlp_forward(&model.encoder, &enc_p, &backend.from_vec(model.encode_pos(&batch.x)), true)?;
+    let enc_p = backend.upload(model.enc_split().1);
+    let zf = backend.mlp_forward(&model.encoder, &enc_p, &backend.from_vec(model.encode_material(&batch.x)), true)?;
     let z = backend.to_vec(&zf.output)?;
     let mut rng = crate::util::rng(noise_seed);
     let zp: Vec<f32> = z.iter().map(|&v| v + w.sigma * normal(&mut rng) as f32).collect();
@@ -576,6 +668,13 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
             matp[4 * i + o..4 * i + o + od].copy_from_slice(&o1[od * i..od * (i + 1)]);
         }
         dec_fwd.push((pt, f0, f1));
+    }
+    let constant = model.constant_roughness(backend, true)?;
+    if let Some((r, _)) = &constant {
+        for i in 0..b {
+            mat[4 * i + 3] = *r;
+            matp[4 * i + 3] = *r;
+        }
     }
 
     // Indirect slots: every (point, blocked lobe) of the batch.
@@ -720,6 +819,18 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
             d_mat[4 * i + c] -= g;
         }
     }
+    // A constant roughness takes every point's roughness gradient; the per-point paths get none.
+    let d_const: f32 = if constant.is_some() {
+        let mut sum = 0.0f64;
+        for i in 0..b {
+            sum += d_mat[4 * i + 3] as f64 + d_matp[4 * i + 3] as f64;
+            d_mat[4 * i + 3] = 0.0;
+            d_matp[4 * i + 3] = 0.0;
+        }
+        sum as f32
+    } else {
+        0.0
+    };
     // Decoders backward on both paths; latent gradients sum.
     let mut dz = vec![0.0f32; b * ld];
     let mut d_dec = Vec::with_capacity(model.decoders.len());
@@ -730,6 +841,12 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
         let g1 = backend.mlp_backward(m, pt, f1, &backend.from_vec(pick(&d_matp)))?;
         let (p0, p1) = (backend.to_vec(&g0.d_params)?, backend.to_vec(&g1.d_params)?);
         d_dec.push(p0.iter().zip(&p1).map(|(a, c)| a + c).collect::<Vec<f32>>());
+        if let (Some((_, fc)), true) = (&constant, (*o..*o + od).contains(&3)) {
+            let mut d = vec![0.0f32; od];
+            d[3 - o] = d_const;
+            let gc = backend.to_vec(&backend.mlp_backward(m, pt, fc, &backend.from_vec(d))?.d_params)?;
+            d_dec.last_mut().into_iter().for_each(|dd| dd.iter_mut().zip(&gc).for_each(|(a, c)| *a += c));
+        }
         let (x0, x1) = (backend.to_vec(&g0.d_input)?, backend.to_vec(&g1.d_input)?);
         for i in 0..b * ld {
             dz[i] += x0[i] + x1[i];
@@ -749,7 +866,12 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
         }
     }
     let ge = backend.mlp_backward(&model.encoder, &enc_p, &zf, &backend.from_vec(dz))?;
-    let d_enc = backend.to_vec(&ge.d_params)?;
+    let mut d_enc = if model.mat_enc.num_params() > 0 {
+        model.mat_enc.backward_params(model.enc_split().0, bytemuck::cast_slice(&batch.x), &backend.to_vec(&ge.d_input)?)
+    } else {
+        Vec::new()
+    };
+    d_enc.extend(backend.to_vec(&ge.d_params)?);
 
     let loss = loss_rgb + smooth + w.kl as f64 * kl;
     let stats = Stage2Stats {
