@@ -14,7 +14,11 @@ image centre along Blender +X (= our +X) and u = 0.25 along Blender +Y (= our -Z
 lookup vector is rotated by +90 degrees about Blender Z to show the EXR the USD way.
 
 Cameras JSON: [{"position": [x, y, z], "target": [x, y, z], "fov_deg": 40}, ...] in our world
-frame (metres, +Y up).
+frame (metres, +Y up); optional per camera: "up" (the image's up direction, default world +Y),
+"width"/"height" (pixels; default --size square) with fov_deg then the horizontal field of view.
+
+Reference images with an alpha channel (photos with their masks) are compared inside the mask:
+PSNR weighted by the reference's alpha, SSIM on both images composited over black by it.
 
 Usage:
   python scripts/blender_verify.py --asset-dir DIR --cameras cams.json --out OUTDIR
@@ -85,24 +89,37 @@ def make_world(scene, env_path, convention="usd"):
     return world
 
 
-def add_camera(scene, cam):
+def add_camera(scene, cam, size):
     data = bpy.data.cameras.new("cam")
-    data.angle = math.radians(cam.get("fov_deg", 40.0))
+    w, h = int(cam.get("width", size)), int(cam.get("height", size))
+    scene.render.resolution_x, scene.render.resolution_y = w, h
+    data.sensor_fit = "HORIZONTAL"
+    data.angle_x = math.radians(cam.get("fov_deg", 40.0))
     obj = bpy.data.objects.new("cam", data)
     scene.collection.objects.link(obj)
     pos = to_blender(cam["position"])
     target = to_blender(cam["target"])
     obj.location = pos
-    obj.rotation_mode = "QUATERNION"
-    obj.rotation_quaternion = (target - pos).to_track_quat("-Z", "Y")
+    if "up" in cam:
+        # Camera axes: -Z looks at the target, +Y is the image's up.
+        from mathutils import Matrix
+        back = (pos - target).normalized()
+        up = to_blender(cam["up"])
+        right = up.cross(back).normalized()
+        up = back.cross(right)
+        obj.rotation_mode = "QUATERNION"
+        obj.rotation_quaternion = Matrix((right, up, back)).transposed().to_quaternion()
+    else:
+        obj.rotation_mode = "QUATERNION"
+        obj.rotation_quaternion = (target - pos).to_track_quat("-Z", "Y")
     scene.camera = obj
     return obj
 
 
-def render_cameras(scene, cameras, prefix):
+def render_cameras(scene, cameras, prefix, size):
     paths = []
     for i, cam in enumerate(cameras):
-        obj = add_camera(scene, cam)
+        obj = add_camera(scene, cam, size)
         path = f"{prefix}_cam{i}.png"
         scene.render.filepath = path
         bpy.ops.render.render(write_still=True)
@@ -212,17 +229,21 @@ def import_summary(result):
     }
 
 
-def load_pixels(path):
+def load_pixels(path, with_alpha=False):
     img = bpy.data.images.load(path)
     w, h = img.size
-    px = np.array(img.pixels[:], dtype=np.float64).reshape(h, w, 4)[:, :, :3]
+    px = np.array(img.pixels[:], dtype=np.float64).reshape(h, w, 4)
     bpy.data.images.remove(img)
-    return px
+    return (px[:, :, :3], px[:, :, 3]) if with_alpha else px[:, :, :3]
 
 
-def psnr(a, b):
-    """PSNR in dB of images in [0, 1], capped at 99 dB (identical images) to stay valid JSON."""
-    mse = float(np.mean((a - b) ** 2))
+def psnr(a, b, weight=None):
+    """PSNR in dB of images in [0, 1] (weighted by a mask if given), capped at 99 dB (identical
+    images) to stay valid JSON."""
+    if weight is None:
+        mse = float(np.mean((a - b) ** 2))
+    else:
+        mse = float(np.sum(weight[:, :, None] * (a - b) ** 2) / max(3.0 * weight.sum(), 1e-12))
     return 99.0 if mse <= 10.0**-9.9 else min(99.0, 10.0 * math.log10(1.0 / mse))
 
 
@@ -249,11 +270,16 @@ def ssim(a, b):
 def compare(name, paths_a, paths_b):
     rows = []
     for pa, pb in zip(paths_a, paths_b):
-        a, b = load_pixels(pa), load_pixels(pb)
+        a, (b, alpha) = load_pixels(pa), load_pixels(pb, with_alpha=True)
         if a.shape != b.shape:
             rows.append({"a": pa, "b": pb, "error": f"size {a.shape} vs {b.shape}"})
             continue
-        rows.append({"a": pa, "b": pb, "psnr": psnr(a, b), "ssim": ssim(a, b)})
+        if alpha.min() < 1.0:
+            # A reference with a mask (a photo): compare the object only.
+            m = alpha[:, :, None]
+            rows.append({"a": pa, "b": pb, "masked": True, "psnr": psnr(a, b, alpha), "ssim": ssim(a * m, b * m)})
+        else:
+            rows.append({"a": pa, "b": pb, "psnr": psnr(a, b), "ssim": ssim(a, b)})
     ok = [r for r in rows if "psnr" in r]
     return {
         "pair": name,
@@ -299,7 +325,7 @@ def main():
     scene = reset_scene(args)
     make_world(scene, env, args.env_convention)
     report["glb_import"] = import_summary(bpy.ops.import_scene.gltf(filepath=glbs[0]))
-    renders["glb"] = render_cameras(scene, cameras, os.path.join(args.out, "glb"))
+    renders["glb"] = render_cameras(scene, cameras, os.path.join(args.out, "glb"), args.size)
 
     if not args.skip_usd:
         scene = reset_scene(args)
@@ -312,13 +338,13 @@ def main():
         if not world_has_texture:
             # Fall back to our own world so the geometry/material comparison still runs.
             make_world(scene, env)
-        renders["usd"] = render_cameras(scene, cameras, os.path.join(args.out, "usd"))
+        renders["usd"] = render_cameras(scene, cameras, os.path.join(args.out, "usd"), args.size)
 
     if args.analytic:
         scene = reset_scene(args)
         make_world(scene, env)
         analytic_reference(args)
-        renders["ref"] = render_cameras(scene, cameras, os.path.join(args.out, "ref"))
+        renders["ref"] = render_cameras(scene, cameras, os.path.join(args.out, "ref"), args.size)
     elif args.reference_dir:
         renders["ref"] = [os.path.join(args.reference_dir, f"ref_cam{i}.png") for i in range(len(cameras))]
 

@@ -199,6 +199,7 @@ fn bake_trains_both_stages_and_ships_them() {
         "bake", ex.to_str().unwrap(), "--out", out.to_str().unwrap(), "--iterations", "4", "--rays", "96", "--downscale", "4",
         "--init", "hull", "--init-steps", "10", "--resolution", "40", "--texture", "64", "--name", "spot",
         "--lobes", "4", "--material-iterations", "2", "--material-batch", "64", "--material-set", "points=500",
+        "--blender-views", "1", "--blender-samples", "4",
     ]);
     assert!(o.status.success(), "{}", text(&o));
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("bake_report.json")).unwrap()).unwrap();
@@ -208,6 +209,13 @@ fn bake_trains_both_stages_and_ships_them() {
     assert_eq!(report["training"]["steps"], 4);
     assert!(report["training"]["hull_init"]["fit_steps"] == 10);
     assert!(report["ground_truth"]["metrics"]["chamfer"].as_f64().is_some(), "{}", report["ground_truth"]);
+    // The Blender check rendered the .glb from a held-out camera and scored it against the photo.
+    let bc = &report["blender_check"];
+    assert_eq!(bc["status"], "ok", "{bc}");
+    assert_eq!(bc["held_out"], true);
+    let psnr = bc["mean_psnr"].as_f64().unwrap();
+    assert!(psnr.is_finite() && psnr > 5.0, "{bc}");
+    assert!(out.join("blender_check/glb_cam0.png").is_file() && out.join("blender_check/photos/ref_cam0.png").is_file());
     assert!(out.join("spot.glb").is_file() && out.join("run/checkpoint.safetensors").is_file());
     common::assert_gltf_valid(&[out.join("spot.glb")]);
 }

@@ -29,7 +29,7 @@ pub struct BenchMaterialArgs {
     #[arg(long, num_args = 1.., default_values_t = vec![8usize, 32])]
     pub lobes: Vec<usize>,
     /// Indirect modes to measure.
-    #[arg(long, value_enum, num_args = 1.., default_values_t = vec![IndirectMode::Ours, IndirectMode::None, IndirectMode::Uniform])]
+    #[arg(long, value_enum, num_args = 1.., default_values_t = vec![IndirectMode::Ours, IndirectMode::None, IndirectMode::Uniform, IndirectMode::Mii])]
     pub indirect: Vec<IndirectMode>,
     /// Stage-2 iterations per variant (default: the preset's).
     #[arg(long)]

@@ -690,8 +690,8 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
         super::preview::BakePreset::Paper => Preset::Paper,
         _ => Preset::Fast,
     };
-    if !(0.0..=1.0).contains(&args.roughness) {
-        anyhow::bail!("--roughness must be in [0, 1], got {}", args.roughness);
+    if !(0.0..=1.0).contains(&args.preview_roughness) {
+        anyhow::bail!("--preview-roughness must be in [0, 1], got {}", args.preview_roughness);
     }
     crate::export::check_writable(&args.asset.out)?;
     let run_dir = args.run.clone().unwrap_or_else(|| args.asset.out.join("run"));
@@ -734,7 +734,7 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
         serde_json::json!({
             "geometry": "trained SDF (stage 1), marching cubes",
             "albedo": "radiance preview: the stage-1 radiance net seen along the normal (lighting baked in, not de-lit)",
-            "roughness": format!("constant {}", args.roughness),
+            "roughness": format!("constant {}", args.preview_roughness),
             "environment": "uniform white (radiance 1)",
         })
     } else {
@@ -744,6 +744,17 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
             "roughness": "stage-2 material autoencoder",
             "environment": "stage-2 SG lobes, rendered to env.exr and listed in the SG JSON",
         })
+    };
+    let frame = super::blender_check::AssetFrame {
+        rotation: DMat3::from_cols_array(&run.run_scene.rotation),
+        scale: args.asset.metres_per_unit / run.run_scene.scale,
+        shift: glam::DVec3::from(report.origin_shift_m.map(f64::from)),
+    };
+    let (train_v, held_v) = train_views(&scene);
+    let blender = if held_v.is_empty() {
+        super::blender_check::run(&args.asset.out, &train_v, false, &frame, &args.blender, ctx)
+    } else {
+        super::blender_check::run(&args.asset.out, &held_v, true, &frame, &args.blender, ctx)
     };
     let weak = run.report["weak_result"].as_bool().unwrap_or(false) || stage2_report["weak_result"].as_bool().unwrap_or(false);
     let summary = serde_json::json!({
@@ -762,6 +773,7 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
         "seconds": { "stage1": seconds_stage1, "stage2": seconds_stage2, "export": seconds_export, "total": t_total.elapsed().as_secs_f64() },
         "export": report,
         "ground_truth": gt,
+        "blender_check": blender,
     });
     super::preview::write_bake_report(&args.asset.out, &name, summary, t_total, ctx)
 }

@@ -32,7 +32,9 @@ pub struct MaterialOptions {
     /// energy are reported).
     #[arg(long)]
     pub lobes: Option<usize>,
-    /// Indirect light: `ours` (F_ind at the secondary hit), `none` (PhySG-like), `uniform` (NeRV-like).
+    /// Indirect light: `ours` (F_ind at the secondary hit), `none` (PhySG-like; pair it with
+    /// `--roughness constant`), `uniform` (NeRV-like), `mii` (MII/InvRender: an MLP at x gives 24
+    /// indirect SGs fitted to the stage-1 radiance; blocked lobes dropped).
     #[arg(long, value_enum, default_value_t = IndirectMode::Ours)]
     pub indirect: IndirectMode,
     /// Material decoders (default: `separate` for synthetic transforms.json scenes, `shared` for

@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod bench_material;
+pub mod blender_check;
 pub mod cli;
 pub mod hull;
 pub mod material;

@@ -62,6 +62,8 @@ pub struct BakeArgs {
     /// Stop after stage 1 and ship its radiance preview (lighting baked in, constant roughness).
     #[arg(long)]
     pub geometry_only: bool,
+    #[command(flatten)]
+    pub blender: super::blender_check::BlenderCheckOptions,
     /// Run folder for the training checkpoints (default: <out>/run); an existing run there resumes.
     #[arg(long)]
     pub run: Option<PathBuf>,
@@ -70,7 +72,7 @@ pub struct BakeArgs {
     pub hull_resolution: usize,
     /// Constant perceptual roughness of the preview and `--geometry-only` materials (stage 2 estimates it).
     #[arg(long, default_value_t = 0.5)]
-    pub roughness: f32,
+    pub preview_roughness: f32,
     /// Preview: a voxel must be seen by at least this fraction of the views to stay in the hull.
     #[arg(long, default_value_t = 0.5)]
     pub min_view_fraction: f32,
@@ -333,8 +335,8 @@ pub fn run_preview(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
     if !(8..=1024).contains(&args.hull_resolution) {
         anyhow::bail!("--hull-resolution {} must be in 8..=1024", args.hull_resolution);
     }
-    if !(0.0..=1.0).contains(&args.roughness) {
-        anyhow::bail!("--roughness must be in [0, 1], got {}", args.roughness);
+    if !(0.0..=1.0).contains(&args.preview_roughness) {
+        anyhow::bail!("--preview-roughness must be in [0, 1], got {}", args.preview_roughness);
     }
     let backend = ctx.backend()?;
     ctx.say(
@@ -422,7 +424,7 @@ pub fn run_preview(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
     let material = PhotoMaterial {
         views: adapters.iter().map(|a| a as &dyn PhotoView).collect(),
         hull: &hull,
-        roughness: args.roughness,
+        roughness: args.preview_roughness,
         fallback,
         feature: 16.0 * footprint as f32,
     };
@@ -473,7 +475,7 @@ pub fn run_preview(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
         "what": {
             "geometry": "visual hull of the masks (signed distance grid)",
             "albedo": "photo projection, cos²-weighted over visible views: lit colour, lighting baked in",
-            "roughness": format!("constant {}", args.roughness),
+            "roughness": format!("constant {}", args.preview_roughness),
             "environment": "uniform white (radiance 1)",
             "not_done": "no training: geometry is the visual hull; light and material are not separated",
         },

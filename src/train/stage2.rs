@@ -13,7 +13,11 @@
 //!   t = 0.01). Where it hits x' (normal n'), `F_ind(PE10(x'), PE4(n'))` → K sigmoid weights,
 //!   L1-normalised, mix the environment lobes into the lobe that replaces lobe k:
 //!   axis ξ_k, `λ = Σ w_j λ_j`, `μ = Σ w_j μ_j`. Baselines on the same data: `none` (no
-//!   occlusion at all, PhySG-like) and `uniform` (`w_j = 1/K`, NeRV-like).
+//!   occlusion at all, PhySG-like; with [`RoughnessMode::Constant`] one roughness for the object),
+//!   `uniform` (`w_j = 1/K`, NeRV-like) and `mii` (MII/InvRender: blocked lobes are dropped and an
+//!   MLP at x gives 24 indirect SGs, fitted by L1 to the stage-1 radiance arriving along every
+//!   lobe axis above the horizon, 0 where the environment is visible, and trained by the render
+//!   loss too).
 //!
 //! Shading is [`crate::sg::shade`]'s closed form (F0 = 0.02), output sRGB-encoded and compared
 //! with the photo by L1 (as stage 1 and PhySG). Geometry is frozen (the public code): primary
@@ -53,6 +57,9 @@ pub enum IndirectMode {
     None,
     /// Blocked lobes replaced by the uniform mixture of the environment (NeRV-like).
     Uniform,
+    /// MII/InvRender: blocked lobes are dropped and an MLP at x gives `mii_lobes` indirect SGs,
+    /// fitted to the stage-1 radiance seen along every lobe axis (see [`mii_fit`]).
+    Mii,
 }
 
 impl IndirectMode {
@@ -61,6 +68,7 @@ impl IndirectMode {
             IndirectMode::Ours => "ours",
             IndirectMode::None => "none",
             IndirectMode::Uniform => "uniform",
+            IndirectMode::Mii => "mii",
         }
     }
 }
@@ -112,6 +120,12 @@ pub struct Stage2Config {
     pub latent_dim: usize,
     pub decoder_widths: Vec<usize>,
     pub indirect_widths: Vec<usize>,
+    /// Indirect SGs per point of the `mii` baseline (MII/InvRender: 24).
+    #[serde(default = "default_mii_lobes")]
+    pub mii_lobes: usize,
+    /// Weight of the `mii` baseline's fit of its SGs to the stage-1 radiance.
+    #[serde(default = "default_mii_weight")]
+    pub mii_weight: f32,
     /// Surface points cached from the training pixels.
     pub points: usize,
     /// Points per iteration.
@@ -161,6 +175,8 @@ impl Stage2Config {
             latent_dim: 32,
             decoder_widths: vec![64],
             indirect_widths: ind,
+            mii_lobes: default_mii_lobes(),
+            mii_weight: default_mii_weight(),
             points: points.min(foreground_pixels.max(1)),
             batch,
             iterations,
@@ -194,6 +210,9 @@ impl Stage2Config {
         let lrs = [self.lr_material, self.lr_light, self.lr_indirect, self.lr_final_factor, self.axis_lr_factor];
         if lrs.iter().any(|v| !(v.is_finite() && *v >= 0.0)) {
             return bad("learning rates must be finite and >= 0");
+        }
+        if self.indirect == IndirectMode::Mii && (self.mii_lobes == 0 || self.mii_lobes > 256) {
+            return bad("mii_lobes must be in 1..=256");
         }
         if !(self.kl_rho > 0.0 && self.kl_rho < 1.0) {
             return bad("kl_rho must be in (0, 1)");
@@ -272,7 +291,20 @@ impl Stage2Config {
         }
     }
 
+    /// F_ind (`ours`): `[PE(x'), PE(n')] → K` sigmoid weights; the `mii` baseline's net:
+    /// `PE(x) → mii_lobes × 7` raw SG parameters (axis, ln λ, μ as the light's).
     pub fn indirect_mlp(&self) -> MlpConfig {
+        if self.indirect == IndirectMode::Mii {
+            return MlpConfig {
+                in_dim: self.pos_encoding().out_dim(3),
+                widths: self.indirect_widths.clone(),
+                out_dim: self.mii_lobes * LIGHT_STRIDE,
+                activation: Activation::Relu,
+                output_activation: Activation::None,
+                skip_layers: vec![],
+                weight_norm: false,
+            };
+        }
         MlpConfig {
             in_dim: self.pos_encoding().out_dim(3) + self.dir_encoding().out_dim(3),
             widths: self.indirect_widths.clone(),
@@ -290,6 +322,14 @@ pub fn apply_overrides(cfg: Stage2Config, overrides: &[String]) -> Result<Stage2
     let c = super::stage1::override_fields(cfg, overrides)?;
     c.validate()?;
     Ok(c)
+}
+
+fn default_mii_lobes() -> usize {
+    24
+}
+
+fn default_mii_weight() -> f32 {
+    1.0
 }
 
 fn default_material_encoding() -> FieldEncoding {
@@ -492,6 +532,25 @@ impl Stage2Model {
         input
     }
 
+    /// The `mii` baseline's raw SG rows `[n, mii_lobes·7]` at points, and the forward pass.
+    fn mii_forward(&self, backend: &Backend, x: &[[f32; 3]], train: bool) -> Result<(Vec<f32>, crate::nn::mlp::MlpForward), BackendError> {
+        let f = backend.mlp_forward(&self.indirect, &backend.upload(&self.ind_params), &backend.from_vec(self.encode_pos(x)), train)?;
+        Ok((backend.to_vec(&f.output)?, f))
+    }
+
+    /// The `mii` baseline's indirect SGs at points (empty rows in other modes): forward only.
+    pub fn mii_lobes_at(&self, backend: &Backend, x: &[[f32; 3]]) -> Result<Vec<Vec<Sg<f64>>>, BackendError> {
+        if self.cfg.indirect != IndirectMode::Mii {
+            return Ok(vec![Vec::new(); x.len()]);
+        }
+        let mut out = Vec::with_capacity(x.len());
+        for c in x.chunks(1 << 13) {
+            let (raw, _) = self.mii_forward(backend, c, false)?;
+            out.extend(raw.chunks_exact(self.cfg.mii_lobes * LIGHT_STRIDE).map(light_lobes));
+        }
+        Ok(out)
+    }
+
     /// F_ind's normalised weights `[n, K]` at hits: forward only.
     pub fn indirect_weights(&self, backend: &Backend, hx: &[[f32; 3]], hn: &[[f32; 3]]) -> Result<Vec<f32>, BackendError> {
         let k = self.cfg.lobes;
@@ -525,6 +584,69 @@ pub fn mix_lobe(lobes: &[Sg<f64>], k: usize, w: &[f32]) -> Sg<f64> {
         }
     }
     Sg { axis: lobes[k].axis, lambda: lam.max(LAMBDA_MIN), mu }
+}
+
+/// The lobes lighting one point: the environment with each blocked lobe `(k, slot)` replaced
+/// (`ours`/`uniform`: by the mixture `weights[slot]` of the environment, see [`mix_lobe`];
+/// `mii`: dropped), followed by the point's `mii` SGs (`extra`, empty in other modes).
+pub fn point_lobes(mode: IndirectMode, lobes: &[Sg<f64>], blocked: &[(usize, usize)], weights: &[f32], extra: &[Sg<f64>]) -> Vec<Sg<f64>> {
+    let k = lobes.len();
+    let mut li = lobes.to_vec();
+    for &(kk, s) in blocked {
+        li[kk] = match mode {
+            IndirectMode::Mii => Sg { mu: [0.0; 3], ..lobes[kk] },
+            _ => mix_lobe(lobes, kk, &weights[s * k..(s + 1) * k]),
+        };
+    }
+    li.extend_from_slice(extra);
+    li
+}
+
+/// Gradient with respect to a stored lobe `[ξ raw (3), ln λ, μ raw (3)]` from the gradient `g`
+/// with respect to the effective lobe (λ = exp(raw) floored at `LAMBDA_MIN`, μ = |raw|).
+fn stored_lobe_grad(raw: &[f32], lambda: f64, g: &[f64; 7]) -> [f64; 7] {
+    let mut out = *g;
+    out[3] = if (raw[3] as f64).exp() > LAMBDA_MIN { g[3] * lambda } else { 0.0 };
+    for c in 0..3 {
+        out[4 + c] = g[4 + c] * (raw[4 + c] as f64).signum();
+    }
+    out
+}
+
+/// The `mii` baseline's fit (InvRender's supervision of its indirect SGs): L1 between the sum of
+/// a point's SGs along each direction and the radiance the stage-1 field sends back from there
+/// (0 where the direction sees the environment), summed over `targets` and scaled by `scale`.
+/// Returns the loss and its gradient with respect to the effective lobes.
+pub fn mii_fit(lobes: &[Sg<f64>], targets: &[([f32; 3], [f32; 3])], scale: f64) -> (f64, Vec<[f64; 7]>) {
+    let mut loss = 0.0;
+    let mut g = vec![[0.0f64; 7]; lobes.len()];
+    for (dir, t) in targets {
+        let d = f64x3(*dir);
+        let terms: Vec<(f64, f64, [f64; 3], f64)> = lobes
+            .iter()
+            .map(|l| {
+                let len = dot3(l.axis, l.axis).sqrt().max(1e-12);
+                let a = l.axis.map(|v| v / len);
+                let cosv = dot3(d, a);
+                ((l.lambda * (cosv - 1.0)).exp(), cosv, a, len)
+            })
+            .collect();
+        for c in 0..3 {
+            let pred: f64 = lobes.iter().zip(&terms).map(|(l, (e, ..))| l.mu[c] * e).sum();
+            let err = pred - t[c] as f64;
+            loss += scale * err.abs();
+            let dp = scale * err.signum();
+            for ((l, (e, cosv, a, len)), gj) in lobes.iter().zip(&terms).zip(g.iter_mut()) {
+                gj[4 + c] += dp * e;
+                let w = dp * l.mu[c] * e;
+                gj[3] += w * (cosv - 1.0);
+                for i in 0..3 {
+                    gj[i] += w * l.lambda * (d[i] - cosv * a[i]) / len;
+                }
+            }
+        }
+    }
+    (loss, g)
 }
 
 /// Outgoing radiance (linear) at one point: the clamped sums of [`lobe_contribution`].
@@ -591,6 +713,9 @@ pub struct Stage2Batch {
     pub target: Vec<[f32; 3]>,
     /// Per point: the blocked lobes and their hits `(k, x', n')`.
     pub hits: Vec<Vec<(usize, [f32; 3], [f32; 3])>>,
+    /// `mii` only, per point: every lobe axis above the horizon and the linear radiance arriving
+    /// along it from the object (the stage-1 colour at the hit; 0 where it is not blocked).
+    pub mii_targets: Vec<Vec<([f32; 3], [f32; 3])>>,
 }
 
 impl Stage2Batch {
@@ -619,6 +744,8 @@ pub struct Stage2Stats {
     pub rgb: f64,
     pub smooth: f64,
     pub kl: f64,
+    /// The `mii` baseline's fit of its indirect SGs (0 in other modes).
+    pub indirect_fit: f64,
     pub psnr: f64,
     /// Blocked (point, lobe) pairs in the batch.
     pub blocked: usize,
@@ -702,6 +829,18 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
     };
     let sums: Vec<f64> = sig.chunks_exact(k).map(|r| r.iter().map(|&v| v as f64).sum::<f64>().max(1e-12)).collect();
     let weights: Vec<f32> = sig.chunks_exact(k).zip(&sums).flat_map(|(r, &s)| r.iter().map(move |&v| (v as f64 / s) as f32)).collect();
+    // The `mii` baseline's SGs at every point.
+    let (mii_raw, mii_fwd) = match mode {
+        IndirectMode::Mii => {
+            let (raw, f) = model.mii_forward(backend, &batch.x, true)?;
+            (raw, Some(f))
+        }
+        _ => (Vec::new(), None),
+    };
+    let mstride = model.cfg.mii_lobes * LIGHT_STRIDE;
+    let mii_sgs: Vec<Vec<Sg<f64>>> = if mii_fwd.is_some() { mii_raw.chunks_exact(mstride).map(light_lobes).collect() } else { vec![Vec::new(); b] };
+    let fit_targets: usize = batch.mii_targets.iter().map(Vec::len).sum();
+    let fit_scale = model.cfg.mii_weight as f64 / (3.0 * fit_targets.max(1) as f64);
 
     // Shading, loss and its gradient per point.
     struct PointOut {
@@ -711,15 +850,14 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
         da: [f64; 3],
         dr: f64,
         dl: Vec<[f64; 7]>,
+        fit: f64,
+        d_fit: Vec<[f64; 7]>,
     }
     let inv3b = 1.0 / (3.0 * b as f64);
     let per: Vec<PointOut> = (0..b)
         .into_par_iter()
         .map(|i| {
-            let mut li = lobes.clone();
-            for &(kk, s) in &slot_of[i] {
-                li[kk] = mix_lobe(&lobes, kk, &weights[s * k..(s + 1) * k]);
-            }
+            let li = point_lobes(mode, &lobes, &slot_of[i], &weights, &mii_sgs[i]);
             let a = [mat[4 * i] as f64, mat[4 * i + 1] as f64, mat[4 * i + 2] as f64];
             let r = mat[4 * i + 3] as f64;
             let (n, v) = (f64x3(batch.n[i]), f64x3(batch.v[i]));
@@ -736,7 +874,11 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
                 d_out[c] = e.signum() * inv3b * de;
             }
             let (da, dr, dl) = shade_grad(a, r, n, v, &li, spec, diff, d_out);
-            PointOut { rgb, loss, se, da, dr, dl }
+            let (fit, d_fit) = match (mii_fwd.is_some(), batch.mii_targets.get(i)) {
+                (true, Some(t)) => mii_fit(&mii_sgs[i], t, fit_scale),
+                _ => (0.0, Vec::new()),
+            };
+            PointOut { rgb, loss, se, da, dr, dl, fit, d_fit }
         })
         .collect();
 
@@ -746,8 +888,23 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
     let mut loss_rgb = 0.0;
     let mut se = 0.0;
     let mut d_mat = vec![0.0f32; b * 4];
+    let mut d_mii = vec![0.0f32; mii_raw.len()];
+    let mut fit = 0.0;
     for (i, p) in per.iter().enumerate() {
         loss_rgb += p.loss;
+        fit += p.fit;
+        // The `mii` SGs follow the environment's K lobes; the render and the fit both reach them.
+        for (j, l) in mii_sgs[i].iter().enumerate() {
+            let raw = &mii_raw[i * mstride + j * LIGHT_STRIDE..i * mstride + (j + 1) * LIGHT_STRIDE];
+            let mut g = p.dl[k + j];
+            if let Some(f) = p.d_fit.get(j) {
+                g.iter_mut().zip(f).for_each(|(a, b)| *a += b);
+            }
+            let st = stored_lobe_grad(raw, l.lambda, &g);
+            for (q, v) in st.iter().enumerate() {
+                d_mii[i * mstride + j * LIGHT_STRIDE + q] = *v as f32;
+            }
+        }
         se += p.se;
         for c in 0..3 {
             d_mat[4 * i + c] = p.da[c] as f32;
@@ -757,12 +914,15 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
         for &(kk, s) in &slot_of[i] {
             replaced[kk] = s;
         }
-        for (kk, g) in p.dl.iter().enumerate() {
+        for (kk, g) in p.dl.iter().take(k).enumerate() {
+            let s = replaced[kk];
+            if s != usize::MAX && mode == IndirectMode::Mii {
+                continue; // dropped: no light from this lobe reaches the point
+            }
             // The axis is lobe k's own parameter in both cases.
             for a in 0..3 {
                 d_light[kk * LIGHT_STRIDE + a] += g[a];
             }
-            let s = replaced[kk];
             if s == usize::MAX {
                 d_light[kk * LIGHT_STRIDE + 3] += g[3];
                 for c in 0..3 {
@@ -791,19 +951,16 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
     // Effective → stored parameters: λ = exp(raw) (floored), μ = |raw|.
     let mut d_light_f = vec![0.0f32; k * LIGHT_STRIDE];
     for (j, l) in lobes.iter().enumerate() {
-        let raw = &model.light[j * LIGHT_STRIDE..(j + 1) * LIGHT_STRIDE];
-        for a in 0..3 {
-            d_light_f[j * LIGHT_STRIDE + a] = d_light[j * LIGHT_STRIDE + a] as f32;
-        }
-        let lam_grad = if (raw[3] as f64).exp() > LAMBDA_MIN { d_light[j * LIGHT_STRIDE + 3] * l.lambda } else { 0.0 };
-        d_light_f[j * LIGHT_STRIDE + 3] = lam_grad as f32;
-        for c in 0..3 {
-            d_light_f[j * LIGHT_STRIDE + 4 + c] = (d_light[j * LIGHT_STRIDE + 4 + c] * (raw[4 + c] as f64).signum()) as f32;
+        let r = j * LIGHT_STRIDE..(j + 1) * LIGHT_STRIDE;
+        let g: [f64; 7] = d_light[r.clone()].try_into().unwrap_or([0.0; 7]);
+        for (q, v) in stored_lobe_grad(&model.light[r], l.lambda, &g).iter().enumerate() {
+            d_light_f[j * LIGHT_STRIDE + q] = *v as f32;
         }
     }
-    let d_ind = match &ind_fwd {
-        Some(f) => backend.to_vec(&backend.mlp_backward(&model.indirect, &ind_p, f, &backend.from_vec(d_sig))?.d_params)?,
-        None => vec![0.0; model.ind_params.len()],
+    let d_ind = match (&ind_fwd, &mii_fwd) {
+        (Some(f), _) => backend.to_vec(&backend.mlp_backward(&model.indirect, &ind_p, f, &backend.from_vec(d_sig))?.d_params)?,
+        (None, Some(f)) => backend.to_vec(&backend.mlp_backward(&model.indirect, &ind_p, f, &backend.from_vec(d_mii))?.d_params)?,
+        _ => vec![0.0; model.ind_params.len()],
     };
 
     // Latent smoothness (L1 between the material of z and of z + ε), mean over channels.
@@ -873,12 +1030,13 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
     };
     d_enc.extend(backend.to_vec(&ge.d_params)?);
 
-    let loss = loss_rgb + smooth + w.kl as f64 * kl;
+    let loss = loss_rgb + smooth + w.kl as f64 * kl + fit;
     let stats = Stage2Stats {
         loss,
         rgb: loss_rgb,
         smooth,
         kl,
+        indirect_fit: fit,
         psnr: crate::eval::psnr_from_mse(se / (3.0 * b as f64)),
         blocked: slots,
         ..Default::default()
@@ -902,6 +1060,11 @@ pub struct SurfaceCache {
     /// `[point][lobe]` → index into `lobe_hits[lobe]`, or `u32::MAX` (not blocked / below the horizon).
     pub hit_index: Vec<u32>,
     pub lobe_hits: Vec<Vec<([f32; 3], [f32; 3])>>,
+    /// `mii` only: beside each hit of `lobe_hits`, the linear stage-1 colour it sends back along
+    /// the ray (the `mii` baseline's supervision).
+    pub lobe_radiance: Vec<Vec<[f32; 3]>>,
+    /// Whether `lobe_radiance` was traced (the `mii` baseline).
+    pub radiance_traced: bool,
     /// Secondary rays traced per lobe (points with the lobe above their horizon).
     pub lobe_traced: Vec<usize>,
     /// Field evaluations spent tracing (primary, secondary, normals).
@@ -981,6 +1144,7 @@ impl SurfaceCache {
         if self.traced_axes.len() != kk || self.hit_index.len() != self.len() * kk {
             self.hit_index = vec![u32::MAX; self.len() * kk];
             self.lobe_hits = vec![Vec::new(); kk];
+            self.lobe_radiance = vec![Vec::new(); kk];
             self.lobe_traced = vec![0; kk];
             self.traced_axes = vec![[0.0; 3]; kk];
         }
@@ -1004,6 +1168,15 @@ impl SurfaceCache {
         }
         let hn = normals_at(backend, sdf, &hit_pts, normal_step(sdf, cfg))?;
         self.evaluations += 6 * hit_pts.len();
+        self.radiance_traced = cfg.indirect == IndirectMode::Mii;
+        self.lobe_radiance[k] = if self.radiance_traced {
+            // Seen from x looking along the axis: the stage-1 radiance net's view direction.
+            let rgb = sdf.colour(backend, &hit_pts, &vec![axis; hit_pts.len()])?;
+            self.evaluations += 7 * hit_pts.len();
+            rgb.iter().map(|c| c.map(crate::image_io::srgb_to_linear)).collect()
+        } else {
+            Vec::new()
+        };
         for i in 0..self.len() {
             self.hit_index[i * kk + k] = u32::MAX;
         }
@@ -1063,6 +1236,18 @@ impl SurfaceCache {
                 }
             }
             b.hits.push(h);
+            if traced && self.radiance_traced {
+                let n = f64x3(self.n[i]);
+                let t = (0..lobes)
+                    .filter(|&k| dot3(n, f64x3(self.traced_axes[k])) > 0.0)
+                    .map(|k| {
+                        let j = self.hit_index[i * lobes + k];
+                        let rad = if j == u32::MAX { [0.0; 3] } else { self.lobe_radiance[k][j as usize] };
+                        (self.traced_axes[k], rad)
+                    })
+                    .collect();
+                b.mii_targets.push(t);
+            }
         }
         b
     }
@@ -1142,7 +1327,7 @@ impl Stage2Trainer {
                 p[a] = b[a] + (p[a] - b[a]) * fa;
             }
         }
-        if self.cfg().indirect == IndirectMode::Ours {
+        if matches!(self.cfg().indirect, IndirectMode::Ours | IndirectMode::Mii) {
             adam_host(&h, &cfg, &mut self.model.ind_params, g.d_ind, &mut self.adam_ind, li)?;
         }
         Ok((true, norm2.sqrt()))
@@ -1243,7 +1428,6 @@ impl Stage2Trainer {
 pub fn render_points(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch) -> Result<Vec<[f32; 3]>, BackendError> {
     let (albedo, rough) = model.material(backend, &batch.x)?;
     let lobes = model.lobes();
-    let k = model.cfg.lobes;
     let (mut hx, mut hn, mut owner) = (Vec::new(), Vec::new(), Vec::new());
     if model.cfg.indirect != IndirectMode::None {
         for (i, hs) in batch.hits.iter().enumerate() {
@@ -1254,7 +1438,8 @@ pub fn render_points(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
             }
         }
     }
-    let w = model.indirect_weights(backend, &hx, &hn)?;
+    let w = if model.cfg.indirect == IndirectMode::Mii { Vec::new() } else { model.indirect_weights(backend, &hx, &hn)? };
+    let mii = model.mii_lobes_at(backend, &batch.x)?;
     let mut per: Vec<Vec<(usize, usize)>> = vec![Vec::new(); batch.len()];
     for (s, &(i, kk)) in owner.iter().enumerate() {
         per[i].push((kk, s));
@@ -1262,10 +1447,7 @@ pub fn render_points(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
     Ok((0..batch.len())
         .into_par_iter()
         .map(|i| {
-            let mut li = lobes.clone();
-            for &(kk, s) in &per[i] {
-                li[kk] = mix_lobe(&lobes, kk, &w[s * k..(s + 1) * k]);
-            }
+            let li = point_lobes(model.cfg.indirect, &lobes, &per[i], &w, &mii[i]);
             let (sp, df) = shade_f64(f64x3(albedo[i]), rough[i] as f64, f64x3(batch.n[i]), f64x3(batch.v[i]), &li);
             [0, 1, 2].map(|c| (sp[c].max(0.0) + df[c].max(0.0)) as f32)
         })

@@ -1,0 +1,209 @@
+//! The Blender check of a bake: `scripts/blender_verify.py` (embedded in the binary) renders the
+//! exported .glb in Cycles under the asset's `env.exr` from held-out cameras, and scores each
+//! render against the held-out photo inside its mask (PSNR/SSIM). It runs through the Python
+//! named by `PII_PYTHON` (default `python3`), which needs Blender as a module (`bpy`); where there
+//! is none the check is reported as skipped, never as a failed bake.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Instant;
+
+use glam::{DMat3, DVec3};
+
+use crate::context::Context;
+use crate::scene::View;
+
+/// The render check, embedded so an installed binary needs no source tree.
+const SCRIPT: &str = include_str!("../../scripts/blender_verify.py");
+
+/// Options of the Blender check (flattened into `bake`).
+#[derive(clap::Args, Clone, Debug)]
+pub struct BlenderCheckOptions {
+    /// Skip rendering the asset in Blender (Cycles) against held-out photos.
+    #[arg(long)]
+    pub no_blender_check: bool,
+    /// Held-out views the Blender check renders.
+    #[arg(long, default_value_t = 2)]
+    pub blender_views: usize,
+    /// Cycles samples per pixel of the Blender check.
+    #[arg(long, default_value_t = 32)]
+    pub blender_samples: usize,
+}
+
+impl Default for BlenderCheckOptions {
+    fn default() -> Self {
+        Self { no_blender_check: false, blender_views: 2, blender_samples: 32 }
+    }
+}
+
+/// Normalised scene frame → asset frame (metres, +Y up, origin at the bottom centre).
+#[derive(Clone, Copy, Debug)]
+pub struct AssetFrame {
+    pub rotation: DMat3,
+    /// Metres per normalised unit.
+    pub scale: f64,
+    pub shift: DVec3,
+}
+
+impl AssetFrame {
+    fn point(&self, p: DVec3) -> DVec3 {
+        self.rotation * p * self.scale + self.shift
+    }
+}
+
+/// The camera record blender_verify.py reads, in the asset frame.
+pub fn camera_json(view: &View, frame: &AssetFrame) -> serde_json::Value {
+    let c = &view.camera;
+    let center = c.center();
+    let r = c.rotation();
+    // OpenCV camera axes: +z looks forward, +y points down the image.
+    let forward = r * DVec3::Z;
+    let up = -(r * DVec3::Y);
+    let pos = frame.point(center);
+    let target = frame.point(center + forward);
+    let up_a = frame.rotation * up;
+    let fov = 2.0 * (c.width as f64 / (2.0 * c.fx)).atan();
+    serde_json::json!({
+        "name": view.name,
+        "position": pos.to_array(),
+        "target": target.to_array(),
+        "up": up_a.to_array(),
+        "fov_deg": fov.to_degrees(),
+        "width": c.width,
+        "height": c.height,
+    })
+}
+
+/// The photo with its mask as alpha (sRGB PNG), the reference the render is scored against.
+fn write_reference(view: &View, path: &Path) -> anyhow::Result<()> {
+    let (w, h) = (view.camera.width, view.camera.height);
+    let mut data = vec![0.0f32; w * h * 4];
+    for i in 0..w * h {
+        data[4 * i..4 * i + 3].copy_from_slice(&view.image.data[3 * i..3 * i + 3]);
+        data[4 * i + 3] = view.mask.as_ref().map_or(1.0, |m| m[i]);
+    }
+    crate::image_io::write_png8(path, w, h, 4, &data, true)?;
+    Ok(())
+}
+
+fn python() -> String {
+    std::env::var("PII_PYTHON").unwrap_or_else(|_| "python3".to_string())
+}
+
+fn skipped(why: String) -> serde_json::Value {
+    serde_json::json!({ "status": "skipped", "why": why })
+}
+
+/// Run the check on the asset in `asset_dir`. `views`: the held-out views (`held_out` false when
+/// the scene has none and training views stand in). Returns the report section.
+pub fn run(asset_dir: &Path, views: &[&View], held_out: bool, frame: &AssetFrame, opts: &BlenderCheckOptions, ctx: &Context) -> serde_json::Value {
+    if opts.no_blender_check {
+        return skipped("--no-blender-check".into());
+    }
+    if views.is_empty() || opts.blender_views == 0 {
+        return skipped("no views to render".into());
+    }
+    let t = Instant::now();
+    match run_inner(asset_dir, views, held_out, frame, opts, ctx) {
+        Ok(mut v) => {
+            v["seconds"] = serde_json::json!(t.elapsed().as_secs_f64());
+            v
+        }
+        Err(e) => {
+            let msg = format!("{e:#}");
+            if msg.contains("No module named 'bpy'") || msg.contains("cannot run") {
+                ctx.say(format!("Blender check skipped: {msg}"));
+                skipped(msg)
+            } else {
+                ctx.say(format!("Blender check FAILED: {msg}"));
+                serde_json::json!({ "status": "failed", "why": msg, "seconds": t.elapsed().as_secs_f64() })
+            }
+        }
+    }
+}
+
+fn run_inner(asset_dir: &Path, views: &[&View], held_out: bool, frame: &AssetFrame, opts: &BlenderCheckOptions, ctx: &Context) -> anyhow::Result<serde_json::Value> {
+    let n = views.len().min(opts.blender_views);
+    // Spread the chosen views over the available ones.
+    let chosen: Vec<&View> = (0..n).map(|i| views[i * views.len() / n]).collect();
+    let out = asset_dir.join("blender_check");
+    let refs = out.join("photos");
+    std::fs::create_dir_all(&refs).map_err(|e| anyhow::anyhow!("{}: cannot create: {e}", refs.display()))?;
+    let cams: Vec<serde_json::Value> = chosen.iter().map(|v| camera_json(v, frame)).collect();
+    let cams_path = out.join("cameras.json");
+    crate::util::atomic_write(&cams_path, serde_json::to_string_pretty(&cams)?.as_bytes())?;
+    for (i, v) in chosen.iter().enumerate() {
+        write_reference(v, &refs.join(format!("ref_cam{i}.png")))?;
+    }
+    let script: PathBuf = std::env::temp_dir().join(format!("pii-bake-blender-verify-{}.py", std::process::id()));
+    std::fs::write(&script, SCRIPT).map_err(|e| anyhow::anyhow!("{}: cannot write: {e}", script.display()))?;
+    let py = python();
+    let report_path = out.join("blender_report.json");
+    ctx.say(format!("Blender check: rendering the .glb in Cycles from {n} {} views ({} samples) with {py}", if held_out { "held-out" } else { "training" }, opts.blender_samples));
+    let result = Command::new(&py)
+        .arg(&script)
+        .args(["--asset-dir"])
+        .arg(asset_dir)
+        .arg("--cameras")
+        .arg(&cams_path)
+        .arg("--out")
+        .arg(&out)
+        .arg("--reference-dir")
+        .arg(&refs)
+        .args(["--samples", &opts.blender_samples.to_string(), "--skip-usd", "--json"])
+        .arg(&report_path)
+        .output();
+    let _ = std::fs::remove_file(&script);
+    let output = result.map_err(|e| anyhow::anyhow!("cannot run {py} (set PII_PYTHON to a Python with bpy): {e}"))?;
+    if !output.status.success() {
+        let err = String::from_utf8_lossy(&output.stderr);
+        let tail: String = err.lines().rev().take(6).collect::<Vec<_>>().into_iter().rev().collect::<Vec<_>>().join("\n");
+        anyhow::bail!("{py} scripts/blender_verify.py exited with {}: {tail}", output.status);
+    }
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&report_path)?)?;
+    let pair = report["pairs"].as_array().and_then(|p| p.iter().find(|p| p["pair"] == "glb_vs_reference")).cloned().unwrap_or_default();
+    let psnr = pair["mean_psnr"].as_f64();
+    let ssim = pair["min_ssim"].as_f64();
+    ctx.say(format!(
+        "Blender check: .glb in Cycles vs {} photos (masked): mean PSNR {} dB, min SSIM {}",
+        if held_out { "held-out" } else { "training" },
+        psnr.map_or("n/a".into(), |v| format!("{v:.2}")),
+        ssim.map_or("n/a".into(), |v| format!("{v:.3}"))
+    ));
+    Ok(serde_json::json!({
+        "status": if psnr.is_some() { "ok" } else { "failed" },
+        "views": chosen.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
+        "held_out": held_out,
+        "samples": opts.blender_samples,
+        "mean_psnr": psnr,
+        "min_psnr": pair["min_psnr"].as_f64(),
+        "min_ssim": ssim,
+        "report": "blender_check/blender_report.json",
+    }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::image_io::ImageF32;
+    use crate::scene::{Camera, Split};
+    use glam::DMat4;
+
+    #[test]
+    fn cameras_map_into_the_asset_frame() {
+        // A camera at (0, 0, -3) looking along +z with image up = -y (OpenCV), 100×50 pixels.
+        let camera = Camera { width: 100, height: 50, fx: 50.0, fy: 50.0, cx: 50.0, cy: 25.0, distortion: None, world_from_camera: DMat4::from_translation(DVec3::new(0.0, 0.0, -3.0)) };
+        let view = View { name: "v".into(), split: Split::Test, camera, image: ImageF32::new(100, 50, 3), mask: None, image_path: "v.png".into() };
+        // Asset frame: a quarter turn about +x, 2 m per unit, lifted by 1 m.
+        let frame = AssetFrame { rotation: DMat3::from_rotation_x(std::f64::consts::FRAC_PI_2), scale: 2.0, shift: DVec3::new(0.0, 1.0, 0.0) };
+        let j = camera_json(&view, &frame);
+        let v = |k: &str| DVec3::from_slice(&j[k].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect::<Vec<_>>());
+        let close = |a: DVec3, b: DVec3| assert!((a - b).length() < 1e-9, "{a} vs {b}");
+        // R_x(90°) maps (0,0,-3) to (0,3,0); ×2, +1 in y.
+        close(v("position"), DVec3::new(0.0, 7.0, 0.0));
+        close(v("target") - v("position"), DVec3::new(0.0, -2.0, 0.0));
+        close(v("up"), DVec3::new(0.0, 0.0, -1.0));
+        assert!((j["fov_deg"].as_f64().unwrap() - 90.0).abs() < 1e-9);
+        assert_eq!((j["width"].as_u64(), j["height"].as_u64()), (Some(100), Some(50)));
+    }
+}
