@@ -152,6 +152,22 @@ fn constant_roughness_is_one_value_for_the_object() {
 }
 
 #[test]
+fn idle_lobes_are_left_out_of_the_exported_environment() {
+    let mut m = Stage2Model::new(&tiny(IndirectMode::Ours, DecoderMode::Separate)).unwrap();
+    assert!(m.idle_lobes().is_empty());
+    assert_eq!(m.env_sgs(glam::DMat3::IDENTITY).lobes.len(), 5);
+    // Lobe 2 goes dark: it is idle and not exported; the others keep their order.
+    m.light[2 * 7 + 4..2 * 7 + 7].fill(0.0);
+    assert_eq!(m.idle_lobes(), vec![2]);
+    let env = m.env_sgs(glam::DMat3::IDENTITY);
+    assert_eq!(env.lobes.len(), 4);
+    assert_eq!(env.lobes[2].axis, m.axes()[3]);
+    // An all-dark light keeps every lobe rather than exporting none.
+    m.light.chunks_exact_mut(7).for_each(|l| l[4..7].fill(0.0));
+    assert!(m.idle_lobes().is_empty());
+}
+
+#[test]
 fn blocked_lobes_change_the_render() {
     // With F_ind the blocked lobes are replaced: the loss differs from the unoccluded one.
     let b = Backend::cpu();

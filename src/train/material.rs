@@ -254,10 +254,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         wsum += vw;
     }
     let psnr = crate::eval::psnr_from_mse(se / wsum.max(1.0));
-    let lobes = trainer.model.lobes();
-    let energy: Vec<f64> = lobes.iter().map(|l| (l.mu[0] + l.mu[1] + l.mu[2]) / 3.0 * crate::sg::shade::sg_integral(l.lambda)).collect();
-    let total: f64 = energy.iter().sum();
-    let idle = energy.iter().filter(|e| **e < 1e-3 * total.max(1e-12)).count();
+    let idle = trainer.model.idle_lobes().len();
     let (alb, rough) = trainer.model.material(backend, &cache.x[..cache.len().min(4096)])?;
     let mean_rough = rough.iter().map(|&r| r as f64).sum::<f64>() / rough.len().max(1) as f64;
     let mean_alb: Vec<f64> = (0..3).map(|c| alb.iter().map(|a| a[c] as f64).sum::<f64>() / alb.len().max(1) as f64).collect();
@@ -288,7 +285,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "last": last,
         "it_per_s": its,
         "material": { "mean_albedo": mean_alb, "mean_roughness": mean_rough },
-        "environment": { "total_energy": total },
+        "environment": { "total_energy": trainer.model.lobe_energies().iter().sum::<f64>(), "lobes_exported": cfg.lobes - idle, "idle_lobe_fraction": super::stage2::IDLE_LOBE_FRACTION },
         "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr": psnr, "per_view": per_view, "seconds": t_eval.elapsed().as_secs_f64() },
         "weak_result": !flags.is_empty(),
         "flags": flags,

@@ -342,6 +342,10 @@ pub fn normal(rng: &mut impl Rng) -> f64 {
     StandardNormal.sample(rng)
 }
 
+/// A lobe with less than this fraction of the environment's energy is idle (reported; left out of
+/// the exported environment).
+pub const IDLE_LOBE_FRACTION: f64 = 1e-3;
+
 /// Parameters per lobe in the light tensor.
 pub const LIGHT_STRIDE: usize = 7;
 
@@ -449,13 +453,32 @@ impl Stage2Model {
         self.light.chunks_exact(LIGHT_STRIDE).map(|l| unit(f64x3([l[0], l[1], l[2]])).map(|v| v as f32)).collect()
     }
 
-    /// The environment in the asset frame (`rotation`: normalised → asset).
+    /// Each lobe's energy, `mean(μ)·∫G` over the sphere.
+    pub fn lobe_energies(&self) -> Vec<f64> {
+        self.lobes().iter().map(|l| (l.mu[0] + l.mu[1] + l.mu[2]) / 3.0 * crate::sg::shade::sg_integral(l.lambda)).collect()
+    }
+
+    /// Lobes carrying less than [`IDLE_LOBE_FRACTION`] of the total energy (they light nothing).
+    pub fn idle_lobes(&self) -> Vec<usize> {
+        let e = self.lobe_energies();
+        let total: f64 = e.iter().sum();
+        if !(total > 0.0) {
+            return Vec::new(); // a dark (or broken) light: nothing to rank, keep every lobe
+        }
+        (0..e.len()).filter(|&k| e[k] < IDLE_LOBE_FRACTION * total).collect()
+    }
+
+    /// The environment in the asset frame (`rotation`: normalised → asset), idle lobes left out:
+    /// the exported light is sized to what the scene's light needs.
     pub fn env_sgs(&self, rotation: glam::DMat3) -> EnvSgs {
+        let idle = self.idle_lobes();
         EnvSgs {
             lobes: self
                 .lobes()
                 .iter()
-                .map(|l| {
+                .enumerate()
+                .filter(|(k, _)| !idle.contains(k))
+                .map(|(_, l)| {
                     let a = rotation * glam::DVec3::from(unit(l.axis));
                     SgLobe { axis: a.as_vec3().to_array(), sharpness: l.lambda as f32, amplitude: l.mu.map(|v| v as f32) }
                 })
