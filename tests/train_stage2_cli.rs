@@ -133,6 +133,34 @@ fn stage_two_bad_inputs_give_clear_errors() {
 }
 
 #[test]
+fn baselines_train_through_the_cli_and_resume() {
+    // The MII/InvRender-like baseline (its SG net fitted to the stage-1 radiance) and the
+    // PhySG-like one (no indirect, one roughness for the object), each stopped and resumed.
+    let dir = tempfile::tempdir().unwrap();
+    let base = dir.path().join("base");
+    stage1(&base);
+    for (name, extra) in [("mii", vec!["--indirect", "mii"]), ("physg", vec!["--indirect", "none", "--roughness", "constant"])] {
+        let (a, b) = (dir.path().join(format!("{name}_a")), dir.path().join(format!("{name}_b")));
+        copy_dir(&base, &a);
+        copy_dir(&base, &b);
+        let mut args = extra.clone();
+        args.extend(["--material-iterations", "4"]);
+        let o = stage2(&a, &args);
+        assert!(o.status.success(), "{name}: {}", text(&o));
+        let o = stage2(&b, &[args.as_slice(), &["--stop-at", "2"]].concat());
+        assert!(o.status.success(), "{name}: {}", text(&o));
+        let o = stage2(&b, &[args.as_slice(), &["--resume"]].concat());
+        assert!(o.status.success(), "{name}: {}", text(&o));
+        assert_eq!(curve(&a), curve(&b), "{name}: a resumed run follows the straight run");
+        let report: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("material_report.json")).unwrap()).unwrap();
+        let cfg = &report["config"];
+        assert_eq!(cfg["indirect"], if name == "mii" { "mii" } else { "none" });
+        assert_eq!(cfg["roughness"], if name == "mii" { "field" } else { "constant" });
+        assert!(report["eval"]["psnr"].as_f64().unwrap().is_finite(), "{report}");
+    }
+}
+
+#[test]
 fn bench_material_writes_figures_per_variant() {
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
