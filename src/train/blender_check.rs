@@ -110,8 +110,11 @@ pub fn run(asset_dir: &Path, views: &[&View], held_out: bool, frame: &AssetFrame
             v
         }
         Err(e) => {
-            let msg = format!("{e:#}");
-            if msg.contains("No module named 'bpy'") || msg.contains("cannot run") {
+            let mut msg = format!("{e:#}");
+            if msg.contains("No module named 'bpy'") {
+                msg = format!("{} has no bpy module: install Blender as a module (`pip install bpy==5.0.1`, Python 3.11) or point PII_PYTHON at a Python that has it", python());
+            }
+            if msg.contains("has no bpy module") || msg.contains("cannot run") {
                 ctx.say(format!("Blender check skipped: {msg}"));
                 skipped(msg)
             } else {
