@@ -4,7 +4,6 @@
 //! mismatched checkpoints, unwritable folders) give one clear error naming the file.
 
 use std::path::Path;
-use std::process::{Command, Stdio};
 
 mod common;
 
@@ -77,28 +76,8 @@ fn ctrl_c_writes_a_checkpoint_and_resume_continues() {
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
     let ex = example();
-    let mut child = Command::new(assert_cmd::cargo::cargo_bin("pii-bake"))
-        .env("XDG_RUNTIME_DIR", std::env::temp_dir())
-        .args(["--backend", "cpu", "--json", "train", ex.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "100000", "--checkpoint-every", "100000"])
-        .args(TINY)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    // Wait for the first progress record, then interrupt.
-    use std::io::BufRead;
-    let stdout = child.stdout.take().unwrap();
-    let mut lines = std::io::BufReader::new(stdout).lines();
-    loop {
-        let l = lines.next().expect("progress records before the end").unwrap();
-        if l.contains("\"type\":\"progress\"") {
-            break;
-        }
-    }
-    let st = Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap();
-    assert!(st.success());
-    for _ in lines {}
-    let o = child.wait_with_output().unwrap();
+    let args = [&["train", ex.to_str().unwrap(), "--out", run.to_str().unwrap(), "--iterations", "100000", "--checkpoint-every", "100000"][..], &TINY[..]].concat();
+    let o = common::interrupt_after_progress(&args, &[]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(err.contains("interrupted") && err.contains("--resume"), "{err}");

@@ -214,31 +214,12 @@ fn eight_views_give_an_asset_and_finite_figures() {
 
 #[test]
 fn ctrl_c_in_stage_two_writes_a_checkpoint_and_resume_continues() {
-    use std::io::BufRead;
-    use std::process::{Command, Stdio};
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
     stage1(&run);
     let ex = example();
-    let mut child = Command::new(assert_cmd::cargo::cargo_bin("pii-bake"))
-        .env("XDG_RUNTIME_DIR", std::env::temp_dir())
-        .args(["--backend", "cpu", "--json", "train", ex.to_str().unwrap(), "--out", run.to_str().unwrap(), "--material-iterations", "100000"])
-        .args(TINY2)
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let stdout = child.stdout.take().unwrap();
-    let mut lines = std::io::BufReader::new(stdout).lines();
-    loop {
-        let l = lines.next().expect("progress records before the end").unwrap();
-        if l.contains("\"type\":\"progress\"") && l.contains("\"material\"") {
-            break;
-        }
-    }
-    assert!(Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap().success());
-    for _ in lines {}
-    let o = child.wait_with_output().unwrap();
+    let args = [&["train", ex.to_str().unwrap(), "--out", run.to_str().unwrap(), "--material-iterations", "100000"][..], &TINY2[..]].concat();
+    let o = common::interrupt_after_progress(&args, &["\"material\""]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(1), "{err}");
     assert!(err.contains("interrupted at stage-2 step") && err.contains("--resume"), "{err}");

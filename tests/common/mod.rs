@@ -66,3 +66,29 @@ pub fn pii(args: &[&str]) -> std::process::Output {
 pub fn text(o: &std::process::Output) -> String {
     format!("{}{}", String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr))
 }
+
+/// Run `pii-bake --backend cpu --json <args>`, send it SIGINT once it prints a progress record
+/// containing every string of `markers`, and return its output (stdout drained to the end).
+pub fn interrupt_after_progress(args: &[&str], markers: &[&str]) -> std::process::Output {
+    use std::io::BufRead;
+    use std::process::Stdio;
+    let mut child = Command::new(assert_cmd::cargo::cargo_bin("pii-bake"))
+        .env("XDG_RUNTIME_DIR", std::env::temp_dir())
+        .args(["--backend", "cpu", "--json"])
+        .args(args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stdout = child.stdout.take().unwrap();
+    let mut lines = std::io::BufReader::new(stdout).lines();
+    loop {
+        let l = lines.next().expect("progress records before the end").unwrap();
+        if l.contains("\"type\":\"progress\"") && markers.iter().all(|m| l.contains(m)) {
+            break;
+        }
+    }
+    assert!(Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap().success());
+    for _ in lines {}
+    child.wait_with_output().unwrap()
+}
