@@ -260,7 +260,6 @@ fn irradiance_error_measures_scale_and_rotation() {
 }
 
 #[test]
-#[test]
 fn init_is_deterministic_given_a_seed() {
     let rgb = render_latlong(&known_env(), 64, 32, LatlongConvention::OpenExrUsd);
     let t = FitTarget::from_map(&rgb, 64, 32, LatlongConvention::OpenExrUsd, 64);
