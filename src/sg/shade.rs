@@ -206,7 +206,8 @@ fn scale<S: Scalar>(a: V3<S>, s: S) -> V3<S> {
 fn add<S: Scalar>(a: V3<S>, b: V3<S>) -> V3<S> {
     [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
 }
-fn normalize<S: Scalar>(a: V3<S>) -> V3<S> {
+/// `a / |a|` (floored length: a zero vector stays finite).
+pub fn normalize<S: Scalar>(a: V3<S>) -> V3<S> {
     let l = dot(a, a).sqrt().max_c(1e-12);
     scale(a, S::c(1.0) / l)
 }

@@ -55,14 +55,10 @@ impl AssetFrame {
 pub fn camera_json(view: &View, frame: &AssetFrame) -> serde_json::Value {
     let c = &view.camera;
     let center = c.center();
-    let r = c.rotation();
-    // OpenCV camera axes: +z looks forward, +y points down the image.
-    let forward = r * DVec3::Z;
-    let up = -(r * DVec3::Y);
     let pos = frame.point(center);
-    let target = frame.point(center + forward);
-    let up_a = frame.rotation * up;
-    let fov = 2.0 * (c.width as f64 / (2.0 * c.fx)).atan();
+    let target = frame.point(center + c.forward());
+    let up_a = frame.rotation * c.up();
+    let fov = c.fov_x();
     serde_json::json!({
         "name": view.name,
         "position": pos.to_array(),

@@ -44,7 +44,7 @@ use crate::nn::mlp::{Activation, Init, Mlp, MlpConfig};
 use crate::nn::params::ParamStore;
 use crate::render::{trace, trace_secondary, Rays, TraceConfig};
 use crate::sg::env::{EnvSgs, SgLobe};
-use crate::sg::shade::{lobe_contribution, Dual, Sg, Surface, LAMBDA_MIN};
+use crate::sg::shade::{lobe_contribution, normalize, sg_eval, Dual, Sg, Surface, LAMBDA_MIN};
 use crate::util::DataError;
 
 /// How light blocked by the object itself is modelled.
@@ -377,14 +377,9 @@ pub fn light_lobes(light: &[f32]) -> Vec<Sg<f64>> {
         .collect()
 }
 
-fn unit(a: [f64; 3]) -> [f64; 3] {
-    let l = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt().max(1e-12);
-    [a[0] / l, a[1] / l, a[2] / l]
-}
-
 /// The unit vector of `a`, in f32.
 pub fn unit_f32(a: [f64; 3]) -> [f32; 3] {
-    unit(a).map(|v| v as f32)
+    normalize(a).map(|v| v as f32)
 }
 
 fn dot3(a: [f64; 3], b: [f64; 3]) -> f64 {
@@ -450,7 +445,7 @@ impl Stage2Model {
 
     /// Unit lobe axes (normalised frame).
     pub fn axes(&self) -> Vec<[f32; 3]> {
-        self.light.chunks_exact(LIGHT_STRIDE).map(|l| unit(f64x3([l[0], l[1], l[2]])).map(|v| v as f32)).collect()
+        self.light.chunks_exact(LIGHT_STRIDE).map(|l| normalize(f64x3([l[0], l[1], l[2]])).map(|v| v as f32)).collect()
     }
 
     /// Each lobe's energy, `mean(μ)·∫G` over the sphere.
@@ -479,7 +474,7 @@ impl Stage2Model {
                 .enumerate()
                 .filter(|(k, _)| !idle.contains(k))
                 .map(|(_, l)| {
-                    let a = rotation * glam::DVec3::from(unit(l.axis));
+                    let a = rotation * glam::DVec3::from(normalize(l.axis));
                     SgLobe { axis: a.as_vec3().to_array(), sharpness: l.lambda as f32, amplitude: l.mu.map(|v| v as f32) }
                 })
                 .collect(),
@@ -523,6 +518,7 @@ impl Stage2Model {
     pub fn material(&self, backend: &Backend, x: &[[f32; 3]]) -> Result<(Vec<[f32; 3]>, Vec<f32>), BackendError> {
         let mut albedo = Vec::with_capacity(x.len());
         let mut rough = Vec::with_capacity(x.len());
+        let constant = self.constant_roughness(backend, false)?.map(|(r, _)| r);
         for c in x.chunks(1 << 14) {
             let enc = self.encode_material(c);
             let z = backend.mlp_forward(&self.encoder, &backend.upload(self.enc_split().1), &backend.from_vec(enc), false)?;
@@ -534,7 +530,6 @@ impl Stage2Model {
                     mat[4 * i + o..4 * i + o + od].copy_from_slice(&out[od * i..od * (i + 1)]);
                 }
             }
-            let constant = self.constant_roughness(backend, false)?.map(|(r, _)| r);
             for m in mat.chunks_exact(4) {
                 albedo.push([m[0], m[1], m[2]]);
                 rough.push(constant.unwrap_or(m[3]));
@@ -641,31 +636,28 @@ fn stored_lobe_grad(raw: &[f32], lambda: f64, g: &[f64; 7]) -> [f64; 7] {
 /// (0 where the direction sees the environment), summed over `targets` and scaled by `scale`.
 /// Returns the loss and its gradient with respect to the effective lobes.
 pub fn mii_fit(lobes: &[Sg<f64>], targets: &[([f32; 3], [f32; 3])], scale: f64) -> (f64, Vec<[f64; 7]>) {
+    type D = Dual<7>;
+    let cst = |x: f64| D { v: x, d: [0.0; 7] };
+    // Each lobe as duals in its 7 effective parameters, axis normalised as the shading does.
+    let duals: Vec<Sg<D>> = lobes
+        .iter()
+        .map(|l| Sg {
+            axis: normalize([D::var(l.axis[0], 0), D::var(l.axis[1], 1), D::var(l.axis[2], 2)]),
+            lambda: D::var(l.lambda, 3),
+            mu: [D::var(l.mu[0], 4), D::var(l.mu[1], 5), D::var(l.mu[2], 6)],
+        })
+        .collect();
     let mut loss = 0.0;
     let mut g = vec![[0.0f64; 7]; lobes.len()];
     for (dir, t) in targets {
-        let d = f64x3(*dir);
-        let terms: Vec<(f64, f64, [f64; 3], f64)> = lobes
-            .iter()
-            .map(|l| {
-                let len = dot3(l.axis, l.axis).sqrt().max(1e-12);
-                let a = l.axis.map(|v| v / len);
-                let cosv = dot3(d, a);
-                ((l.lambda * (cosv - 1.0)).exp(), cosv, a, len)
-            })
-            .collect();
+        let w = f64x3(*dir).map(cst);
+        let vals: Vec<[D; 3]> = duals.iter().map(|l| sg_eval(l, w)).collect();
         for c in 0..3 {
-            let pred: f64 = lobes.iter().zip(&terms).map(|(l, (e, ..))| l.mu[c] * e).sum();
-            let err = pred - t[c] as f64;
+            let err = vals.iter().map(|v| v[c].v).sum::<f64>() - t[c] as f64;
             loss += scale * err.abs();
             let dp = scale * err.signum();
-            for ((l, (e, cosv, a, len)), gj) in lobes.iter().zip(&terms).zip(g.iter_mut()) {
-                gj[4 + c] += dp * e;
-                let w = dp * l.mu[c] * e;
-                gj[3] += w * (cosv - 1.0);
-                for i in 0..3 {
-                    gj[i] += w * l.lambda * (d[i] - cosv * a[i]) / len;
-                }
+            for (gj, v) in g.iter_mut().zip(&vals) {
+                gj.iter_mut().zip(&v[c].d).for_each(|(a, d)| *a += dp * d);
             }
         }
     }
@@ -1112,7 +1104,7 @@ pub fn normals_at(backend: &Backend, sdf: &Stage1Model, x: &[[f32; 3]], step: f3
             }
         }
         let v = sdf.sdf(backend, &pts)?;
-        out.extend(v.chunks_exact(6).map(|d| unit([(d[0] - d[1]) as f64, (d[2] - d[3]) as f64, (d[4] - d[5]) as f64]).map(|v| v as f32)));
+        out.extend(v.chunks_exact(6).map(|d| normalize([(d[0] - d[1]) as f64, (d[2] - d[3]) as f64, (d[4] - d[5]) as f64]).map(|v| v as f32)));
     }
     Ok(out)
 }
