@@ -56,7 +56,7 @@ fn batch() -> Batch {
 }
 
 fn settings() -> LossSettings {
-    LossSettings { alpha: 10.0, eikonal_weight: 0.1, mask_weight: 1.0, eikonal_points: 4, mask_samples: 40, near_surface_sigma: 0.05, surface_eikonal: true, out_of_mask_min_sdf: true }
+    LossSettings { alpha: 10.0, eikonal_weight: 0.1, mask_weight: 1.0, eikonal_points: 4, mask_samples: 40, near_surface_sigma: 0.05, smoothness_weight: 0.0, surface_eikonal: true, out_of_mask_min_sdf: true }
 }
 
 /// The differentiable pixel: eikonal at the uniform points only (the eikonal at surface points
@@ -215,7 +215,7 @@ fn a_few_steps_learn_a_silhouette() {
     let wrong_before = eval(&t, &mut pii_bake::util::rng(99));
     for step in 0..25 {
         let bt = make_batch(&mut rng);
-        let ls = LossSettings { alpha: 50.0, eikonal_weight: 0.1, mask_weight: 100.0, eikonal_points: 64, mask_samples: 16, near_surface_sigma: 0.02, surface_eikonal: true, out_of_mask_min_sdf: false };
+        let ls = LossSettings { alpha: 50.0, eikonal_weight: 0.1, mask_weight: 100.0, eikonal_points: 64, mask_samples: 16, near_surface_sigma: 0.02, smoothness_weight: 0.0, surface_eikonal: true, out_of_mask_min_sdf: false };
         let g = loss_and_grad(&b, &t.model, &t.cfg.trace, &bt, &EIK, &ls, 0.5).unwrap();
         assert!(g.stats.loss.is_finite(), "step {step}: {:?}", g.stats);
         let (applied, _) = t.apply(g.d_sdf, g.d_radiance, 1e-2, 1e-2).unwrap();

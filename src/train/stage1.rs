@@ -100,6 +100,14 @@ pub struct Stage1Config {
     pub trace: TraceConfig,
     pub init: InitMode,
     pub hull_fit_steps: u64,
+    /// Points per hull-fit step (half near the hull's surface, half uniform).
+    #[serde(default = "default_hull_fit_points")]
+    pub hull_fit_points: usize,
+    /// The hull fit's learning rate decays exponentially from `hull_fit_lr` to this fraction of it.
+    #[serde(default = "default_hull_fit_lr")]
+    pub hull_fit_lr: f32,
+    #[serde(default = "default_hull_fit_lr_final")]
+    pub hull_fit_lr_final: f32,
     pub rays: usize,
     pub iterations: u64,
     pub lr_field: f32,
@@ -122,6 +130,11 @@ pub struct Stage1Config {
     pub foreground_fraction: f32,
     /// Eikonal points jittered around the surface points (normal deviation, normalised units).
     pub near_surface_sigma: f32,
+    /// Normal smoothness: weight of `|∇f(x) − ∇f(x + δ)|²` between each surface point and its
+    /// jittered eikonal point (δ ~ N(0, near_surface_sigma²)); zero for a true SDF of a flat
+    /// surface, it penalises curvature and the bumps a sparsely fed hash grid grows.
+    #[serde(default)]
+    pub smoothness_weight: f32,
     /// Coarse to fine (hash grid): this fraction of the levels is active at the start (and in
     /// the hull fit), all of them from `coarse_to_fine_end` of the run on (linear in between).
     pub coarse_levels: f32,
@@ -174,6 +187,9 @@ impl Stage1Config {
             trace,
             init,
             hull_fit_steps: 200,
+            hull_fit_points: 2048,
+            hull_fit_lr: 5e-3,
+            hull_fit_lr_final: 0.1,
             rays: 1024,
             iterations: 1000,
             lr_field: 2e-4,
@@ -188,6 +204,7 @@ impl Stage1Config {
             out_of_mask_min_sdf: false,
             foreground_fraction: 0.5,
             near_surface_sigma: 0.02,
+            smoothness_weight: 0.0,
             // Coarse to fine from a sphere; a hull fit has already set every level.
             coarse_levels: if init == InitMode::Hull { 1.0 } else { 0.5 },
             coarse_to_fine_end: 0.5,
@@ -228,6 +245,9 @@ impl Stage1Config {
         if self.checkpoint_every == 0 {
             return bad("checkpoint interval must be > 0");
         }
+        if self.hull_fit_points == 0 || !(self.hull_fit_lr.is_finite() && self.hull_fit_lr > 0.0) || !(self.hull_fit_lr_final > 0.0 && self.hull_fit_lr_final <= 1.0) {
+            return bad("hull fit: points must be > 0, its learning rate > 0 and its final factor in (0, 1]");
+        }
         Ok(())
     }
 
@@ -267,6 +287,16 @@ impl Stage1Config {
             weight_norm: false,
         }
     }
+}
+
+fn default_hull_fit_points() -> usize {
+    2048
+}
+fn default_hull_fit_lr() -> f32 {
+    5e-3
+}
+fn default_hull_fit_lr_final() -> f32 {
+    1.0
 }
 
 /// `KEY=VALUE` overrides of top-level config fields (VALUE parsed as JSON, else a string).
@@ -477,6 +507,8 @@ pub struct StepStats {
     pub rgb: f64,
     pub eikonal: f64,
     pub mask: f64,
+    #[serde(default)]
+    pub smoothness: f64,
     /// PSNR (sRGB) on the surface rays of the batch.
     pub psnr: f64,
     pub surface_rays: usize,
@@ -506,6 +538,8 @@ pub struct LossSettings {
     pub mask_samples: usize,
     /// Eikonal points jittered around each surface point (0 = none).
     pub near_surface_sigma: f32,
+    /// See [`Stage1Config::smoothness_weight`] (needs `near_surface_sigma > 0`).
+    pub smoothness_weight: f32,
     /// Also apply the eikonal term at the traced surface points (held fixed, as IDR).
     pub surface_eikonal: bool,
     /// See [`Stage1Config::out_of_mask_min_sdf`].
@@ -597,7 +631,7 @@ pub fn loss_and_grad(
     pts.extend(eik_points.iter().flatten());
     evals += 7 * (ns + nm + ne);
     let inv_b = 1.0 / nrays.max(1) as f64;
-    let mut parts = (0.0f64, 0.0f64, 0.0f64, 0.0f64); // rgb, eik, mask, sq err
+    let mut parts = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64); // rgb, eik, mask, sq err, smoothness
     let mut d_radiance: Result<Vec<f32>, BackendError> = Ok(Vec::new());
     let rad_params = backend.upload(&model.radiance_params);
     let (_, d_sdf) = model.field.value_and_grad(backend, &model.sdf_params, &pts, |o: &FieldOutputs| {
@@ -672,13 +706,29 @@ pub fn loss_and_grad(
                 g.gradient[3 * i + a] += c * gr[a];
             }
         }
-        (parts.0 + parts.1 + parts.2, g)
+        // Normal smoothness between each surface point and its jittered point.
+        if ls.smoothness_weight > 0.0 && ls.near_surface_sigma > 0.0 && ns > 0 {
+            let w = ls.smoothness_weight as f64 / ns as f64;
+            let first_jit = n - ns;
+            for k in 0..ns {
+                let j = first_jit + k;
+                let d: [f64; 3] = [0, 1, 2].map(|a| (o.gradient[3 * k + a] - o.gradient[3 * j + a]) as f64);
+                parts.4 += w * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+                for a in 0..3 {
+                    let c = (2.0 * w * d[a]) as f32;
+                    g.gradient[3 * k + a] += c;
+                    g.gradient[3 * j + a] -= c;
+                }
+            }
+        }
+        (parts.0 + parts.1 + parts.2 + parts.4, g)
     })?;
     let d_radiance = d_radiance?;
     let d_radiance = if d_radiance.is_empty() { vec![0.0; model.radiance_params.len()] } else { d_radiance };
     let mse = if ns > 0 { parts.3 / (3 * ns) as f64 } else { f64::NAN };
     let stats = StepStats {
-        loss: parts.0 + parts.1 + parts.2,
+        loss: parts.0 + parts.1 + parts.2 + parts.4,
+        smoothness: parts.4,
         rgb: parts.0,
         eikonal: parts.1,
         mask: parts.2,
@@ -758,6 +808,7 @@ impl Trainer {
             eikonal_points: self.cfg.eikonal_points,
             mask_samples: self.cfg.mask_samples,
             near_surface_sigma: self.cfg.near_surface_sigma,
+            smoothness_weight: self.cfg.smoothness_weight,
             surface_eikonal: true,
             out_of_mask_min_sdf: self.cfg.out_of_mask_min_sdf,
         };
@@ -777,7 +828,7 @@ impl Trainer {
     /// Fit the SDF to a signed distance grid (the visual hull) for `steps` steps: L1 on the
     /// distance within ±`clamp`, plus the eikonal term. Returns the final mean error.
     pub fn fit_to_grid(&mut self, backend: &Backend, grid: &super::hull::Grid3, steps: u64, mut progress: impl FnMut(u64, f64)) -> Result<f64, BackendError> {
-        let n = 2048usize;
+        let n = self.cfg.hull_fit_points.max(2);
         let clamp = 0.1f32;
         // Points near the hull's surface (voxels within two cells of the zero level) and uniform ones.
         let near: Vec<[f32; 3]> = (0..grid.data.len())
@@ -830,7 +881,8 @@ impl Trainer {
                 self.skipped += 1;
                 continue;
             }
-            adam_host(&self.host, &self.adam(), &mut self.model.sdf_params, d, &mut fit_state, self.cfg.lr_field.max(5e-3))?;
+            let lr = self.cfg.hull_fit_lr * self.cfg.hull_fit_lr_final.powf(s as f32 / steps.max(1) as f32);
+            adam_host(&self.host, &self.adam(), &mut self.model.sdf_params, d, &mut fit_state, lr)?;
             last = l;
             progress(s, l);
         }
