@@ -63,7 +63,8 @@ fn identical_prediction_is_perfect() {
     assert_eq!(f(&m["roughness"]["mse"]), 0.0);
     assert!(f(&m["env"]["relative_l2"]) < 1e-6, "{}", m["env"]);
     assert!((f(&m["env"]["scale"][0]) - 0.5).abs() < 1e-6);
-    assert_eq!(f(&m["mesh"]["chamfer"]), 0.0);
+    // Distances to the other surface: zero up to rounding for identical meshes.
+    assert!(f(&m["mesh"]["chamfer"]) < 1e-9, "{}", m["mesh"]);
     assert!((f(&m["mesh"]["normal_consistency"]) - 1.0).abs() < 1e-12);
     assert_eq!(m["missing"].as_array().unwrap().len(), 0, "{}", m["missing"]);
 }

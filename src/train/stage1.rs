@@ -135,6 +135,11 @@ pub struct Stage1Config {
     /// surface, it penalises curvature and the bumps a sparsely fed hash grid grows.
     #[serde(default)]
     pub smoothness_weight: f32,
+    /// The colour loss reaches the SDF only through the surface point (implicit differentiation)
+    /// and the feature, not through the normal the radiance net is given: a hash grid can bend
+    /// its normals cheaply to explain shading noise.
+    #[serde(default)]
+    pub detach_normal: bool,
     /// Coarse to fine (hash grid): this fraction of the levels is active at the start (and in
     /// the hull fit), all of them from `coarse_to_fine_end` of the run on (linear in between).
     pub coarse_levels: f32,
@@ -205,6 +210,7 @@ impl Stage1Config {
             foreground_fraction: 0.5,
             near_surface_sigma: 0.02,
             smoothness_weight: 0.0,
+            detach_normal: false,
             // Coarse to fine from a sphere; a hull fit has already set every level.
             coarse_levels: if init == InitMode::Hull { 1.0 } else { 0.5 },
             coarse_to_fine_end: 0.5,
@@ -540,6 +546,8 @@ pub struct LossSettings {
     pub near_surface_sigma: f32,
     /// See [`Stage1Config::smoothness_weight`] (needs `near_surface_sigma > 0`).
     pub smoothness_weight: f32,
+    /// See [`Stage1Config::detach_normal`].
+    pub detach_normal: bool,
     /// Also apply the eikonal term at the traced surface points (held fixed, as IDR).
     pub surface_eikonal: bool,
     /// See [`Stage1Config::out_of_mask_min_sdf`].
@@ -673,8 +681,10 @@ pub fn loss_and_grad(
                 let vd = id - 6 - fd;
                 for k in 0..ns {
                     let row = &din[k * id..(k + 1) * id];
-                    for a in 0..3 {
-                        g.gradient[3 * k + a] += row[3 + vd + a];
+                    if !ls.detach_normal {
+                        for a in 0..3 {
+                            g.gradient[3 * k + a] += row[3 + vd + a];
+                        }
                     }
                     g.feature[k * fd..(k + 1) * fd].copy_from_slice(&row[6 + vd..]);
                 }
@@ -708,18 +718,8 @@ pub fn loss_and_grad(
         }
         // Normal smoothness between each surface point and its jittered point.
         if ls.smoothness_weight > 0.0 && ls.near_surface_sigma > 0.0 && ns > 0 {
-            let w = ls.smoothness_weight as f64 / ns as f64;
-            let first_jit = n - ns;
-            for k in 0..ns {
-                let j = first_jit + k;
-                let d: [f64; 3] = [0, 1, 2].map(|a| (o.gradient[3 * k + a] - o.gradient[3 * j + a]) as f64);
-                parts.4 += w * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
-                for a in 0..3 {
-                    let c = (2.0 * w * d[a]) as f32;
-                    g.gradient[3 * k + a] += c;
-                    g.gradient[3 * j + a] -= c;
-                }
-            }
+            let pairs: Vec<(usize, usize)> = (0..ns).map(|k| (k, n - ns + k)).collect();
+            parts.4 += normal_smoothness(&o.gradient, &pairs, ls.smoothness_weight, &mut g.gradient);
         }
         (parts.0 + parts.1 + parts.2 + parts.4, g)
     })?;
@@ -740,6 +740,26 @@ pub fn loss_and_grad(
         ..Default::default()
     };
     Ok(StepGrad { stats, d_sdf, d_radiance })
+}
+
+/// Normal smoothness `weight · mean over pairs (a, b) of |g_a − g_b|²` over field gradients
+/// (`gradients`: 3 per point); adds its derivative to `d_gradients` and returns the value.
+pub fn normal_smoothness(gradients: &[f32], pairs: &[(usize, usize)], weight: f32, d_gradients: &mut [f32]) -> f64 {
+    if pairs.is_empty() {
+        return 0.0;
+    }
+    let w = weight as f64 / pairs.len() as f64;
+    let mut loss = 0.0;
+    for &(a, b) in pairs {
+        let d: [f64; 3] = [0, 1, 2].map(|c| (gradients[3 * a + c] - gradients[3 * b + c]) as f64);
+        loss += w * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+        for c in 0..3 {
+            let v = (2.0 * w * d[c]) as f32;
+            d_gradients[3 * a + c] += v;
+            d_gradients[3 * b + c] -= v;
+        }
+    }
+    loss
 }
 
 /// A trainer: model, optimiser state, step counter.
@@ -809,6 +829,7 @@ impl Trainer {
             mask_samples: self.cfg.mask_samples,
             near_surface_sigma: self.cfg.near_surface_sigma,
             smoothness_weight: self.cfg.smoothness_weight,
+            detach_normal: self.cfg.detach_normal,
             surface_eikonal: true,
             out_of_mask_min_sdf: self.cfg.out_of_mask_min_sdf,
         };
