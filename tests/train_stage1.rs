@@ -282,9 +282,14 @@ fn normal_smoothness_gradient_matches_central_differences_through_the_field() {
     use pii_bake::nn::field::FieldOutputGrads;
     use pii_bake::train::stage1::normal_smoothness;
     let b = Backend::cpu();
-    let cfg = tiny_config();
+    let mut cfg = tiny_config();
+    // f32 rounding of the SDF values (~1e-7 relative) divided by the stencil's 2h is the noise on
+    // each normal: a wide stencil and a wide parameter step keep it below the checked change.
+    cfg.field.grad_step = 0.1;
     let model = Model::new(&cfg).unwrap();
-    let pts: Vec<f32> = vec![0.45, 0.1, 0.1, 0.5, 0.12, 0.08, -0.2, 0.4, 0.2, -0.22, 0.43, 0.18];
+    // Pairs far enough apart that their gradients differ by O(1): the f32 rounding of the
+    // numerical normals (~1e-5) stays well below the differences being checked.
+    let pts: Vec<f32> = vec![0.45, 0.1, 0.1, 0.05, 0.5, -0.1, -0.2, 0.4, 0.2, 0.1, -0.3, -0.4];
     let pairs = [(0usize, 1usize), (2, 3)];
     let value = |params: &[f32]| {
         let o = model.field.eval_with_gradient(&b, params, &pts).unwrap();
@@ -303,7 +308,7 @@ fn normal_smoothness_gradient_matches_central_differences_through_the_field() {
     assert!(loss > 0.0);
     let mut checked = 0;
     for i in (0..grad.len()).step_by((grad.len() / 40).max(1)) {
-        let h = 2e-3f32;
+        let h = 1e-2f32;
         let mut p = model.sdf_params.clone();
         p[i] += h;
         let lp = value(&p);
