@@ -140,6 +140,10 @@ pub struct Stage1Config {
     /// its normals cheaply to explain shading noise.
     #[serde(default)]
     pub detach_normal: bool,
+    /// The colour loss moves the surface point along the ray (implicit differentiation). Off:
+    /// the colour reaches the SDF only through the normal and the feature.
+    #[serde(default = "yes")]
+    pub colour_moves_point: bool,
     /// Coarse to fine (hash grid): this fraction of the levels is active at the start (and in
     /// the hull fit), all of them from `coarse_to_fine_end` of the run on (linear in between).
     pub coarse_levels: f32,
@@ -211,6 +215,7 @@ impl Stage1Config {
             near_surface_sigma: 0.02,
             smoothness_weight: 0.0,
             detach_normal: false,
+            colour_moves_point: true,
             // Coarse to fine from a sphere; a hull fit has already set every level.
             coarse_levels: if init == InitMode::Hull { 1.0 } else { 0.5 },
             coarse_to_fine_end: 0.5,
@@ -295,6 +300,9 @@ impl Stage1Config {
     }
 }
 
+fn yes() -> bool {
+    true
+}
 fn default_hull_fit_points() -> usize {
     2048
 }
@@ -548,6 +556,8 @@ pub struct LossSettings {
     pub smoothness_weight: f32,
     /// See [`Stage1Config::detach_normal`].
     pub detach_normal: bool,
+    /// See [`Stage1Config::colour_moves_point`].
+    pub colour_moves_point: bool,
     /// Also apply the eikonal term at the traced surface points (held fixed, as IDR).
     pub surface_eikonal: bool,
     /// See [`Stage1Config::out_of_mask_min_sdf`].
@@ -671,7 +681,7 @@ pub fn loss_and_grad(
                     }
                     // Implicit differentiation: dx/df(x0) = −v/(∇f·v). Grazing or back-facing
                     // hits (∇f·v ≥ −0.05) pass no gradient through the point.
-                    if gdotv < -0.05 {
+                    if ls.colour_moves_point && gdotv < -0.05 {
                         g.sdf[k] += -s_term / gdotv;
                     }
                 }
@@ -830,6 +840,7 @@ impl Trainer {
             near_surface_sigma: self.cfg.near_surface_sigma,
             smoothness_weight: self.cfg.smoothness_weight,
             detach_normal: self.cfg.detach_normal,
+            colour_moves_point: self.cfg.colour_moves_point,
             surface_eikonal: true,
             out_of_mask_min_sdf: self.cfg.out_of_mask_min_sdf,
         };
