@@ -56,7 +56,7 @@ fn batch() -> Batch {
 }
 
 fn settings() -> LossSettings {
-    LossSettings { alpha: 10.0, eikonal_weight: 0.1, mask_weight: 1.0, eikonal_points: 4, mask_samples: 40, near_surface_sigma: 0.05, smoothness_weight: 0.0, detach_normal: false, colour_moves_point: true, surface_eikonal: true, out_of_mask_min_sdf: true }
+    LossSettings { alpha: 10.0, eikonal_weight: 0.1, mask_weight: 1.0, eikonal_points: 4, mask_samples: 40, near_surface_sigma: 0.05, smoothness_weight: 0.0, normal_gradient_scale: 1.0, colour_moves_point: true, surface_eikonal: true, out_of_mask_min_sdf: true }
 }
 
 /// The differentiable pixel: eikonal at the uniform points only (the eikonal at surface points
@@ -215,7 +215,7 @@ fn a_few_steps_learn_a_silhouette() {
     let wrong_before = eval(&t, &mut pii_bake::util::rng(99));
     for step in 0..25 {
         let bt = make_batch(&mut rng);
-        let ls = LossSettings { alpha: 50.0, eikonal_weight: 0.1, mask_weight: 100.0, eikonal_points: 64, mask_samples: 16, near_surface_sigma: 0.02, smoothness_weight: 0.0, detach_normal: false, colour_moves_point: true, surface_eikonal: true, out_of_mask_min_sdf: false };
+        let ls = LossSettings { alpha: 50.0, eikonal_weight: 0.1, mask_weight: 100.0, eikonal_points: 64, mask_samples: 16, near_surface_sigma: 0.02, smoothness_weight: 0.0, normal_gradient_scale: 1.0, colour_moves_point: true, surface_eikonal: true, out_of_mask_min_sdf: false };
         let g = loss_and_grad(&b, &t.model, &t.cfg.trace, &bt, &EIK, &ls, 0.5).unwrap();
         assert!(g.stats.loss.is_finite(), "step {step}: {:?}", g.stats);
         let (applied, _) = t.apply(g.d_sdf, g.d_radiance, 1e-2, 1e-2).unwrap();
@@ -330,14 +330,18 @@ fn normal_smoothness_gradient_matches_central_differences_through_the_field() {
 
 #[test]
 fn ablation_switches_cut_only_their_path_into_the_sdf() {
-    // detach_normal and colour_moves_point change the SDF's gradient and nothing else: the
+    // normal_gradient_scale and colour_moves_point change the SDF's gradient and nothing else: the
     // radiance net's gradient and every loss value stay as they are.
     let b = Backend::cpu();
     let cfg = tiny_config();
     let model = Model::new(&cfg).unwrap();
     let batch = batch();
     let full = loss_and_grad(&b, &model, &cfg.trace, &batch, &EIK, &pixel_settings(), 0.0).unwrap();
-    for ls in [LossSettings { detach_normal: true, ..pixel_settings() }, LossSettings { colour_moves_point: false, ..pixel_settings() }] {
+    for ls in [
+        LossSettings { normal_gradient_scale: 0.0, ..pixel_settings() },
+        LossSettings { normal_gradient_scale: 0.3, ..pixel_settings() },
+        LossSettings { colour_moves_point: false, ..pixel_settings() },
+    ] {
         let cut = loss_and_grad(&b, &model, &cfg.trace, &batch, &EIK, &ls, 0.0).unwrap();
         assert_eq!(cut.stats.loss, full.stats.loss);
         assert_eq!(cut.d_radiance, full.d_radiance);
