@@ -198,3 +198,19 @@ fn bake_trains_both_stages_and_ships_them() {
     assert!(out.join("spot.glb").is_file() && out.join("run/checkpoint.safetensors").is_file());
     common::assert_gltf_valid(&[out.join("spot.glb")]);
 }
+
+#[test]
+fn geometry_set_reaches_the_run_config_and_bad_settings_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("r");
+    let o = train(&run, &["--iterations", "2", "--geometry-set", "normal_gradient_scale=0.3", "--geometry-set", "smoothness_weight=0.05"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let cfg: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("run.json")).unwrap()).unwrap();
+    assert_eq!(cfg["config"]["normal_gradient_scale"].as_f64(), Some(0.3f32 as f64), "{}", cfg["config"]);
+    assert_eq!(cfg["config"]["smoothness_weight"].as_f64(), Some(0.05f32 as f64));
+    for (set, says) in [("no_such_setting=1", "no setting named"), ("normal_gradient_scale=2", "[0, 1]"), ("hull_fit_points=0", "hull fit")] {
+        let o = train(&dir.path().join("bad"), &["--iterations", "2", "--geometry-set", set]);
+        assert!(!o.status.success(), "{set} was accepted");
+        assert!(text(&o).contains(says), "{set}: {}", text(&o));
+    }
+}

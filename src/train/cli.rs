@@ -62,6 +62,10 @@ pub struct TrainOptions {
     /// Steps of the hull init's fit (default: the preset's).
     #[arg(long)]
     pub init_steps: Option<u64>,
+    /// Stage-1 setting overrides for a new run, KEY=VALUE (any field of run.json's config, e.g.
+    /// `--geometry-set normal_gradient_scale=0.3`), repeatable.
+    #[arg(long = "geometry-set", value_name = "KEY=VALUE")]
+    pub geometry_set: Vec<String>,
 }
 
 #[derive(Debug, clap::Args)]
@@ -258,6 +262,7 @@ pub fn train_stage1(
     if let Some(n) = opts.init_steps {
         cfg.hull_fit_steps = n;
     }
+    let cfg = super::stage1::apply_overrides(cfg, &opts.geometry_set)?;
     let mut curve: Vec<String> = Vec::new();
     let mut seconds_init = 0.0;
     let mut hull_report = serde_json::Value::Null;
