@@ -306,20 +306,19 @@ fn normal_smoothness_gradient_matches_central_differences_through_the_field() {
         })
         .unwrap();
     assert!(loss > 0.0);
-    let mut checked = 0;
-    for i in (0..grad.len()).step_by((grad.len() / 40).max(1)) {
-        let h = 1e-2f32;
+    // Every 40th parameter through the project's central-difference check, the others held
+    // (|a − fd| ≤ 1e-4 + 5 %·|fd|; steps much below 1e-2 meet the normals' f32 rounding).
+    let idx: Vec<usize> = (0..grad.len()).step_by((grad.len() / 40).max(1)).collect();
+    assert!(idx.len() >= 20);
+    let x: Vec<f64> = idx.iter().map(|&i| model.sdf_params[i] as f64).collect();
+    let analytic: Vec<f64> = idx.iter().map(|&i| grad[i] as f64).collect();
+    pii_bake::testing::check_grad("normal smoothness d/dθ", &x, &analytic, 1e-2, pii_bake::testing::Tolerance::new(0.05, 1e-4), |x| {
         let mut p = model.sdf_params.clone();
-        p[i] += h;
-        let lp = value(&p);
-        p[i] -= 2.0 * h;
-        let lm = value(&p);
-        let fd = (lp - lm) / (2.0 * h as f64);
-        let a = grad[i] as f64;
-        assert!((a - fd).abs() <= 1e-4 + 0.05 * fd.abs().max(a.abs()), "param {i}: analytic {a:.6e} vs central difference {fd:.6e}");
-        checked += 1;
-    }
-    assert!(checked >= 20);
+        for (&i, &v) in idx.iter().zip(x) {
+            p[i] = v as f32;
+        }
+        value(&p)
+    });
     // A hand-computed case: two pairs, each |d|² = 2, mean 2; d/dg_0 = 2·w·d_0.
     let mut d = vec![0.0f32; 12];
     let g4 = [1.0f32, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 1.0];

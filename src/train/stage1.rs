@@ -197,8 +197,10 @@ impl Stage1Config {
             trace,
             init,
             hull_fit_steps: 200,
-            hull_fit_points: 2048,
-            hull_fit_lr: 5e-3,
+            hull_fit_points: default_hull_fit_points(),
+            hull_fit_lr: default_hull_fit_lr(),
+            // Run files written before this field existed read it as 1.0 (the constant rate they
+            // were trained with, `default_hull_fit_lr_final`).
             hull_fit_lr_final: 0.1,
             rays: 1024,
             iterations: 1000,
