@@ -6,7 +6,7 @@
 use pii_bake::backend::Backend;
 use pii_bake::nn::field::Encoder;
 use pii_bake::train::stage1::Preset;
-use pii_bake::train::stage2::{loss_and_grad, DecoderMode, IndirectMode, RoughnessMode, Stage2Batch, Stage2Config, Stage2Grads, Stage2Model, Stage2Trainer, Stage2Weights};
+use pii_bake::train::stage2::{boundary_visibility, loss_and_grad, BoundaryMode, DecoderMode, IndirectMode, RoughnessMode, Stage2Batch, Stage2Config, Stage2Grads, Stage2Model, Stage2Trainer, Stage2Weights};
 
 fn tiny(indirect: IndirectMode, decoder: DecoderMode) -> Stage2Config {
     let mut c = Stage2Config::new(Preset::Fast, 1000);
@@ -53,11 +53,20 @@ fn weights() -> Stage2Weights {
 }
 
 fn grads(b: &Backend, m: &Stage2Model) -> Stage2Grads {
-    loss_and_grad(b, m, &batch(), &weights(), 7).unwrap()
+    grads_on(b, m, &batch())
+}
+
+fn grads_on(b: &Backend, m: &Stage2Model, batch: &Stage2Batch) -> Stage2Grads {
+    loss_and_grad(b, m, batch, &weights(), 7).unwrap()
 }
 
 fn check_group(what: &str, analytic: &[f32], len: usize, model: &Stage2Model, set: &dyn Fn(&mut Stage2Model, usize, f32)) {
+    check_group_on(&batch(), what, analytic, len, model, set)
+}
+
+fn check_group_on(batch: &Stage2Batch, what: &str, analytic: &[f32], len: usize, model: &Stage2Model, set: &dyn Fn(&mut Stage2Model, usize, f32)) {
     let b = Backend::cpu();
+    let grads = |b: &Backend, m: &Stage2Model| grads_on(b, m, batch);
     let mut checked = 0;
     for idx in (0..len).step_by((len / 30).max(1)) {
         let h = 1e-3f32;
@@ -220,3 +229,77 @@ fn wgpu_matches_cpu_on_one_steps_gradients() {
     }
 }
 
+
+/// The test batch with the traced axes known and point 3's hit of lobe 0 grazing the occluder
+/// (`n'·ξ0 = 0`, a boundary light), traced along an axis 0.6° from lobe 0's current one.
+fn boundary_batch(model: &Stage2Model) -> Stage2Batch {
+    let mut b = batch();
+    let axes = model.axes();
+    let a = axes[0];
+    // A direction perpendicular to the axis, and the traced axis turned slightly toward it.
+    let p = norm([a[1] - a[2], a[2] - a[0], a[0] - a[1]]);
+    let t0 = norm([a[0] + 0.01 * p[0], a[1] + 0.01 * p[1], a[2] + 0.01 * p[2]]);
+    let q = [t0[1] * p[2] - t0[2] * p[1], t0[2] * p[0] - t0[0] * p[2], t0[0] * p[1] - t0[1] * p[0]];
+    // n' ⟂ ξ0, mostly along p (so turning the axis moves it across the silhouette).
+    let d = p[0] * t0[0] + p[1] * t0[1] + p[2] * t0[2];
+    let n2 = norm([p[0] - d * t0[0] + 0.3 * q[0], p[1] - d * t0[1] + 0.3 * q[1], p[2] - d * t0[2] + 0.3 * q[2]]);
+    b.hits[3] = vec![(0, [-0.2, 0.3, 0.2], n2)];
+    b.traced_axes = axes;
+    b.traced_axes[0] = t0;
+    b
+}
+
+#[test]
+fn boundary_visibility_ramps_across_the_silhouette() {
+    let n2 = [0.0f32, 1.0, 0.0];
+    let traced = [1.0f32, 0.0, 0.0];
+    let eps = 0.0349;
+    // On the traced axis: half visible; not a boundary light when the hit is not grazing.
+    let (v, d) = boundary_visibility([2.0, 0.0, 0.0], traced, n2, eps, BoundaryMode::Flowing).unwrap();
+    assert!((v - 0.5).abs() < 1e-12);
+    assert!((d[1] - 1.0 / (2.0 * eps * 2.0)).abs() < 1e-9 && d[0].abs() < 1e-12, "{d:?}");
+    assert!(boundary_visibility([1.0, 0.0, 0.0], traced, [0.0, 0.1, 0.995], eps, BoundaryMode::Flowing).is_some());
+    assert!(boundary_visibility([1.0, 0.0, 0.0], traced, [0.1, 0.995, 0.0], eps, BoundaryMode::Flowing).is_none());
+    assert!(boundary_visibility([1.0, 0.0, 0.0], traced, n2, 0.0, BoundaryMode::Flowing).is_none());
+    // Turned past ε away from the occluder (along n'): fully visible, no gradient; into it: blocked.
+    let turn = |a: f64| [a.cos(), a.sin(), 0.0];
+    assert_eq!(boundary_visibility(turn(0.05), traced, n2, eps, BoundaryMode::Flowing).unwrap(), (1.0, [0.0; 3]));
+    assert_eq!(boundary_visibility(turn(-0.05), traced, n2, eps, BoundaryMode::Flowing).unwrap(), (0.0, [0.0; 3]));
+    let (v, _) = boundary_visibility(turn(0.01), traced, n2, eps, BoundaryMode::Flowing).unwrap();
+    assert!((v - (0.5 + 0.01f64.sin() / (2.0 * eps))).abs() < 1e-9);
+    // Detached: the same value, no gradient.
+    let (vd, dd) = boundary_visibility(turn(0.01), traced, n2, eps, BoundaryMode::Detached).unwrap();
+    assert_eq!((vd, dd), (v, [0.0; 3]));
+}
+
+#[test]
+fn boundary_lights_pass_their_gradient_to_the_light() {
+    let b = Backend::cpu();
+    for mode in [IndirectMode::Ours, IndirectMode::Uniform, IndirectMode::Mii] {
+        let mut cfg = tiny(mode, DecoderMode::Separate);
+        cfg.mii_lobes = 3;
+        let model = Stage2Model::new(&cfg).unwrap();
+        let bb = boundary_batch(&model);
+        let g = grads_on(&b, &model, &bb);
+        assert_eq!(g.stats.boundary, 1, "{mode:?}");
+        // The boundary light changes the render: the hard test would leave lobe 0 fully blocked.
+        let mut hard = bb.clone();
+        hard.traced_axes.clear();
+        let gh = grads_on(&b, &model, &hard);
+        assert_eq!(gh.stats.boundary, 0);
+        assert!((g.stats.rgb - gh.stats.rgb).abs() > 1e-9, "{mode:?}: the boundary light is in the colour");
+        // Flowing: every gradient, the axes' boundary term included, matches central differences.
+        check_group_on(&bb, "light", &g.d_light, model.light.len(), &model, &|m, i, h| m.light[i] += h);
+        if mode != IndirectMode::Uniform {
+            check_group_on(&bb, "indirect", &g.d_ind, model.ind_params.len(), &model, &|m, i, h| m.ind_params[i] += h);
+        }
+        // Detached: the same loss; only lobe 0's axis loses the boundary term.
+        let mut det = model.clone();
+        det.cfg.boundary = BoundaryMode::Detached;
+        let gd = grads_on(&b, &det, &bb);
+        assert_eq!(gd.stats.loss, g.stats.loss);
+        let diff: Vec<usize> = (0..g.d_light.len()).filter(|&i| (g.d_light[i] - gd.d_light[i]).abs() > 1e-7).collect();
+        assert!(!diff.is_empty() && diff.iter().all(|&i| i < 3), "{mode:?}: the boundary term reaches lobe 0's axis only, got {diff:?}");
+        assert_eq!(g.d_ind, gd.d_ind);
+    }
+}

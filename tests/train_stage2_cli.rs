@@ -135,11 +135,12 @@ fn stage_two_bad_inputs_give_clear_errors() {
 #[test]
 fn baselines_train_through_the_cli_and_resume() {
     // The MII/InvRender-like baseline (its SG net fitted to the stage-1 radiance) and the
-    // PhySG-like one (no indirect, one roughness for the object), each stopped and resumed.
+    // PhySG-like one (no indirect, one roughness for the object), each stopped and resumed; the
+    // first also with its boundary lights detached (the public code's).
     let dir = tempfile::tempdir().unwrap();
     let base = dir.path().join("base");
     stage1(&base);
-    for (name, extra) in [("mii", vec!["--indirect", "mii"]), ("physg", vec!["--indirect", "none", "--roughness", "constant"])] {
+    for (name, extra) in [("mii", vec!["--indirect", "mii", "--boundary", "detached"]), ("physg", vec!["--indirect", "none", "--roughness", "constant"])] {
         let (a, b) = (dir.path().join(format!("{name}_a")), dir.path().join(format!("{name}_b")));
         copy_dir(&base, &a);
         copy_dir(&base, &b);
@@ -156,6 +157,9 @@ fn baselines_train_through_the_cli_and_resume() {
         let cfg = &report["config"];
         assert_eq!(cfg["indirect"], if name == "mii" { "mii" } else { "none" });
         assert_eq!(cfg["roughness"], if name == "mii" { "field" } else { "constant" });
+        assert_eq!(cfg["boundary"], if name == "mii" { "detached" } else { "flowing" });
+        let bf = report["cache"]["boundary_fraction"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&bf), "{report}");
         assert!(report["eval"]["psnr"].as_f64().unwrap().is_finite(), "{report}");
     }
 }

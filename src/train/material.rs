@@ -14,7 +14,7 @@ use rayon::prelude::*;
 
 use super::cli::{masked_srgb_error, read_curve, read_run_scene, subsampled_rays, train_views, training_progress, write_curve, RunScene, TrainedSdf};
 use super::stage1::{scene_key, Model as Stage1Model, Preset, TrainData, Trainer, CHECKPOINT};
-use super::stage2::{shade_f64, DecoderMode, IndirectMode, RoughnessMode, Stage2Config, Stage2Model, Stage2Stats, Stage2Trainer, SurfaceCache, CHECKPOINT2};
+use super::stage2::{shade_f64, BoundaryMode, DecoderMode, IndirectMode, RoughnessMode, Stage2Config, Stage2Model, Stage2Stats, Stage2Trainer, SurfaceCache, CHECKPOINT2};
 use crate::backend::{Backend, BackendError};
 use crate::context::Context;
 use crate::export::{AssetArgs, ExportConfig, ExportReport};
@@ -45,6 +45,10 @@ pub struct MaterialOptions {
     /// the PhySG-like baseline's).
     #[arg(long, value_enum, default_value_t = RoughnessMode::Field)]
     pub roughness: RoughnessMode,
+    /// Boundary lights (secondary hits that graze the occluder): `flowing` passes their gradient to
+    /// the light (ours), `detached` keeps them in the colour without gradient (the public code).
+    #[arg(long, value_enum, default_value_t = BoundaryMode::Flowing)]
+    pub boundary: BoundaryMode,
     /// Stage-2 iterations (default: the preset's).
     #[arg(long)]
     pub material_iterations: Option<u64>,
@@ -58,7 +62,7 @@ pub struct MaterialOptions {
 
 impl Default for MaterialOptions {
     fn default() -> Self {
-        Self { lobes: None, indirect: IndirectMode::Ours, decoder: None, roughness: RoughnessMode::Field, material_iterations: None, material_batch: None, material_set: Vec::new() }
+        Self { lobes: None, indirect: IndirectMode::Ours, decoder: None, roughness: RoughnessMode::Field, boundary: BoundaryMode::Flowing, material_iterations: None, material_batch: None, material_set: Vec::new() }
     }
 }
 
@@ -106,6 +110,7 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, opts: &Ma
     cfg.seed = seed;
     cfg.indirect = opts.indirect;
     cfg.roughness = opts.roughness;
+    cfg.boundary = opts.boundary;
     let synthetic = matches!(format, Format::Transforms);
     cfg.decoder = opts.decoder.unwrap_or(if synthetic { DecoderMode::Separate } else { DecoderMode::Shared });
     if let Some(k) = opts.lobes {
@@ -178,13 +183,15 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     pb.finish_and_clear();
     let seconds_cache = tcache.elapsed().as_secs_f64();
     ctx.say(format!(
-        "stage 2 ({} preset, indirect {}, {} decoder): {} lobes, {} cached surface points, {:.1}% of (point, lobe above the horizon) pairs blocked; cache traced once in {:.1} s ({} field evaluations) — without it every iteration would trace {} rays",
+        "stage 2 ({} preset, indirect {}, {} decoder): {} lobes, {} cached surface points, {:.1}% of (point, lobe above the horizon) pairs blocked, {:.2}% of the blocked ones boundary lights (boundary gradient {}); cache traced once in {:.1} s ({} field evaluations) — without it every iteration would trace {} rays",
         cfg.preset.name(),
         cfg.indirect.name(),
         match cfg.decoder { DecoderMode::Separate => "separate", DecoderMode::Shared => "shared" },
         cfg.lobes,
         cache.len(),
         100.0 * cache.blocked_fraction(),
+        100.0 * cache.boundary_fraction(cfg.boundary_epsilon),
+        match cfg.boundary { BoundaryMode::Flowing => "flowing", BoundaryMode::Detached => "detached" },
         seconds_cache,
         cache.evaluations,
         cfg.secondary_rays_per_batch()
@@ -278,7 +285,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "backend": backend.describe(),
         "config": cfg,
         "sizes": { "lobes": cfg.lobes, "lobes_without_energy": idle, "points": cache.len(), "batch": cfg.batch, "parameters": trainer.model.num_params(), "why": why },
-        "cache": { "points": cache.len(), "blocked_fraction": cache.blocked_fraction(), "field_evaluations": cache.evaluations, "seconds": seconds_cache, "lobes_retraced": cache.retraced, "seconds_retracing": retrace_s,
+        "cache": { "points": cache.len(), "blocked_fraction": cache.blocked_fraction(), "boundary_fraction": cache.boundary_fraction(cfg.boundary_epsilon), "field_evaluations": cache.evaluations, "seconds": seconds_cache, "lobes_retraced": cache.retraced, "seconds_retracing": retrace_s,
                    "rays_per_iteration_without_cache": cfg.secondary_rays_per_batch() },
         "steps": trainer.step,
         "skipped_steps": trainer.skipped,

@@ -73,6 +73,18 @@ impl IndirectMode {
     }
 }
 
+/// Whether boundary lights pass gradient (see [`boundary_visibility`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default, clap::ValueEnum, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BoundaryMode {
+    /// Ours: the lobe axis (and with it the light) learns from where the silhouette of the
+    /// occluder cuts it.
+    #[default]
+    Flowing,
+    /// The public code's: the boundary lights are in the colour but pass no gradient.
+    Detached,
+}
+
 /// Material decoder layout (supplementary §5.2).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -150,6 +162,14 @@ pub struct Stage2Config {
     pub retrace_degrees: f32,
     /// Shading normals: central differences of the stage-1 field with its gradient step times this.
     pub normal_step_factor: f32,
+    /// Boundary lights: whether the visibility ramp of grazing hits passes gradient (ours) or is
+    /// detached (the public code's). See [`boundary_visibility`].
+    #[serde(default)]
+    pub boundary: BoundaryMode,
+    /// A secondary hit is a boundary light when `|n'·ω| <` this (the supplementary's 0.0349, sin 2°);
+    /// it is also the half-width in radians of the visibility ramp across the silhouette.
+    #[serde(default = "default_boundary_epsilon")]
+    pub boundary_epsilon: f32,
     pub seed: u64,
     pub checkpoint_every: u64,
 }
@@ -194,6 +214,8 @@ impl Stage2Config {
             secondary_threshold: 5e-4,
             retrace_degrees: 8.0,
             normal_step_factor: 1.0,
+            boundary: BoundaryMode::Flowing,
+            boundary_epsilon: default_boundary_epsilon(),
             seed: 0,
             checkpoint_every: 100,
         }
@@ -216,6 +238,9 @@ impl Stage2Config {
         }
         if !(self.kl_rho > 0.0 && self.kl_rho < 1.0) {
             return bad("kl_rho must be in (0, 1)");
+        }
+        if !(self.boundary_epsilon >= 0.0 && self.boundary_epsilon < 1.0) {
+            return bad("boundary_epsilon must be in [0, 1)");
         }
         Ok(())
     }
@@ -322,6 +347,10 @@ pub fn apply_overrides(cfg: Stage2Config, overrides: &[String]) -> Result<Stage2
     let c = super::stage1::override_fields(cfg, overrides)?;
     c.validate()?;
     Ok(c)
+}
+
+fn default_boundary_epsilon() -> f32 {
+    0.0349
 }
 
 fn default_mii_lobes() -> usize {
@@ -606,18 +635,69 @@ pub fn mix_lobe(lobes: &[Sg<f64>], k: usize, w: &[f32]) -> Sg<f64> {
 
 /// The lobes lighting one point: the environment with each blocked lobe `(k, slot)` replaced
 /// (`ours`/`uniform`: by the mixture `weights[slot]` of the environment, see [`mix_lobe`];
-/// `mii`: dropped), followed by the point's `mii` SGs (`extra`, empty in other modes).
-pub fn point_lobes(mode: IndirectMode, lobes: &[Sg<f64>], blocked: &[(usize, usize)], weights: &[f32], extra: &[Sg<f64>]) -> Vec<Sg<f64>> {
+/// `mii`: dropped), followed by the point's `mii` SGs (`extra`, empty in other modes), followed by
+/// one copy of the environment lobe per boundary light (`vis[slot] > 0`, see
+/// [`boundary_visibility`]): its amplitude times `v`, the replacement's times `1 − v`. `vis` may be
+/// empty (no boundary lights).
+pub fn point_lobes(mode: IndirectMode, lobes: &[Sg<f64>], blocked: &[(usize, usize)], weights: &[f32], extra: &[Sg<f64>], vis: &[f64]) -> Vec<Sg<f64>> {
     let k = lobes.len();
     let mut li = lobes.to_vec();
+    let mut copies = Vec::new();
     for &(kk, s) in blocked {
         li[kk] = match mode {
             IndirectMode::Mii => Sg { mu: [0.0; 3], ..lobes[kk] },
             _ => mix_lobe(lobes, kk, &weights[s * k..(s + 1) * k]),
         };
+        let v = vis.get(s).copied().unwrap_or(0.0);
+        if v > 0.0 {
+            li[kk].mu = li[kk].mu.map(|m| m * (1.0 - v));
+            copies.push(Sg { mu: lobes[kk].mu.map(|m| m * v), ..lobes[kk] });
+        }
     }
     li.extend_from_slice(extra);
+    li.extend(copies);
     li
+}
+
+/// Boundary lights (the supplementary's Leibniz/Reynolds term for a visibility that jumps where
+/// the occluder's silhouette crosses a lobe axis). A secondary hit with `|n'·ξ0| < ε` (ξ0 the unit
+/// axis the ray was traced along, n' the occluder's outward normal at the hit) grazes the
+/// occluder: the ray lies on its silhouette. There lobe k lights the point with
+/// `v·(environment lobe) + (1 − v)·(replacement lobe)`, `v` the visibility ramp across the
+/// silhouette, `v = clamp(½ + n'·(ξ − ξ0)/(2ε))`: ½ on the traced axis, 1 once the axis has turned
+/// ε away from the occluder, 0 once it has turned ε into it (a box filter of half-width ε
+/// radians over the hard visibility). The value is the same in both [`BoundaryMode`]s; `Flowing`
+/// passes `∂v/∂ξ = (I − ξξᵀ)n'/(2ε)`, so the axis learns `(L_env − L_ind)·∂v/∂ξ`, the boundary term
+/// a hard visibility test (and the detached public code) never sees.
+///
+/// Returns `(v, ∂v/∂(stored axis))` for a boundary light, None otherwise (`ε = 0` turns them off).
+pub fn boundary_visibility(raw_axis: [f64; 3], traced: [f32; 3], n2: [f32; 3], eps: f64, mode: BoundaryMode) -> Option<(f64, [f64; 3])> {
+    let a0 = normalize(f64x3(traced));
+    let n = f64x3(n2);
+    if eps <= 0.0 || !(dot3(n, a0).abs() < eps) {
+        return None;
+    }
+    let len = dot3(raw_axis, raw_axis).sqrt().max(1e-12);
+    let xi = raw_axis.map(|v| v / len);
+    let (nx, n0) = (dot3(n, xi), dot3(n, a0));
+    let s = 0.5 + (nx - n0) / (2.0 * eps);
+    let mut d = [0.0; 3];
+    if mode == BoundaryMode::Flowing && s > 0.0 && s < 1.0 {
+        for a in 0..3 {
+            d[a] = (n[a] - xi[a] * nx) / (2.0 * eps * len);
+        }
+    }
+    Some((s.clamp(0.0, 1.0), d))
+}
+
+/// [`boundary_visibility`] for every slot `(point, lobe k, x', n')` of a batch (`(0, 0)` where the
+/// hit is not a boundary light or the batch does not know the traced axes).
+fn slot_visibility(model: &Stage2Model, lobes: &[Sg<f64>], traced: &[[f32; 3]], slots: &[(usize, [f32; 3])]) -> Vec<(f64, [f64; 3])> {
+    let eps = model.cfg.boundary_epsilon as f64;
+    slots
+        .iter()
+        .map(|&(kk, n2)| traced.get(kk).and_then(|t| boundary_visibility(lobes[kk].axis, *t, n2, eps, model.cfg.boundary)).unwrap_or((0.0, [0.0; 3])))
+        .collect()
 }
 
 /// Gradient with respect to a stored lobe `[ξ raw (3), ln λ, μ raw (3)]` from the gradient `g`
@@ -731,6 +811,8 @@ pub struct Stage2Batch {
     /// `mii` only, per point: every lobe axis above the horizon and the linear radiance arriving
     /// along it from the object (the stage-1 colour at the hit; 0 where it is not blocked).
     pub mii_targets: Vec<Vec<([f32; 3], [f32; 3])>>,
+    /// Per lobe: the unit axis its hits were traced along (empty: no boundary lights).
+    pub traced_axes: Vec<[f32; 3]>,
 }
 
 impl Stage2Batch {
@@ -764,6 +846,9 @@ pub struct Stage2Stats {
     pub psnr: f64,
     /// Blocked (point, lobe) pairs in the batch.
     pub blocked: usize,
+    /// Of those, boundary lights (grazing hits, see [`boundary_visibility`]).
+    #[serde(default)]
+    pub boundary: usize,
     pub applied: bool,
     pub grad_norm: f64,
 }
@@ -834,6 +919,9 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
         }
     }
     let slots = hx.len();
+    let slot_lobes: Vec<(usize, [f32; 3])> = slot_of.iter().flatten().map(|&(kk, sl)| (kk, hn[sl])).collect();
+    let vis = slot_visibility(model, &lobes, &batch.traced_axes, &slot_lobes);
+    let vis_v: Vec<f64> = vis.iter().map(|v| v.0).collect();
     let ind_p = backend.upload(&model.ind_params);
     let (ind_fwd, sig) = if mode == IndirectMode::Ours && slots > 0 {
         let f = backend.mlp_forward(&model.indirect, &ind_p, &backend.from_vec(model.indirect_input(&hx, &hn)), true)?;
@@ -872,7 +960,7 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
     let per: Vec<PointOut> = (0..b)
         .into_par_iter()
         .map(|i| {
-            let li = point_lobes(mode, &lobes, &slot_of[i], &weights, &mii_sgs[i]);
+            let li = point_lobes(mode, &lobes, &slot_of[i], &weights, &mii_sgs[i], &vis_v);
             let a = [mat[4 * i] as f64, mat[4 * i + 1] as f64, mat[4 * i + 2] as f64];
             let r = mat[4 * i + 3] as f64;
             let (n, v) = (f64x3(batch.n[i]), f64x3(batch.v[i]));
@@ -929,6 +1017,33 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
         for &(kk, s) in &slot_of[i] {
             replaced[kk] = s;
         }
+        // Boundary lights: the environment copies follow the `mii` SGs in the point's lobes; the
+        // replacement keeps `1 − v` of its amplitude.
+        let mut keep = vec![1.0f64; k];
+        let mut copy = k + mii_sgs[i].len();
+        for &(kk, s) in &slot_of[i] {
+            let (v, dv) = vis[s];
+            if v <= 0.0 {
+                continue;
+            }
+            let (g, gm) = (&p.dl[copy], &p.dl[kk]);
+            copy += 1;
+            let l = &lobes[kk];
+            for a in 0..3 {
+                d_light[kk * LIGHT_STRIDE + a] += g[a];
+            }
+            d_light[kk * LIGHT_STRIDE + 3] += g[3];
+            let mix_mu = if mode == IndirectMode::Mii { [0.0; 3] } else { mix_lobe(&lobes, kk, &weights[s * k..(s + 1) * k]).mu };
+            let mut d_v = 0.0;
+            for c in 0..3 {
+                d_light[kk * LIGHT_STRIDE + 4 + c] += v * g[4 + c];
+                d_v += g[4 + c] * l.mu[c] - gm[4 + c] * mix_mu[c];
+            }
+            for a in 0..3 {
+                d_light[kk * LIGHT_STRIDE + a] += d_v * dv[a];
+            }
+            keep[kk] = 1.0 - v;
+        }
         for (kk, g) in p.dl.iter().take(k).enumerate() {
             let s = replaced[kk];
             if s != usize::MAX && mode == IndirectMode::Mii {
@@ -945,14 +1060,15 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
                 }
             } else {
                 let wrow = &weights[s * k..(s + 1) * k];
+                let kp = keep[kk];
                 let mut dw = vec![0.0f64; k];
                 for (j, l) in lobes.iter().enumerate() {
                     let wj = wrow[j] as f64;
                     d_light[j * LIGHT_STRIDE + 3] += wj * g[3];
                     for c in 0..3 {
-                        d_light[j * LIGHT_STRIDE + 4 + c] += wj * g[4 + c];
+                        d_light[j * LIGHT_STRIDE + 4 + c] += wj * kp * g[4 + c];
                     }
-                    dw[j] = g[3] * l.lambda + g[4] * l.mu[0] + g[5] * l.mu[1] + g[6] * l.mu[2];
+                    dw[j] = g[3] * l.lambda + kp * (g[4] * l.mu[0] + g[5] * l.mu[1] + g[6] * l.mu[2]);
                 }
                 if mode == IndirectMode::Ours {
                     let wdw: f64 = (0..k).map(|j| wrow[j] as f64 * dw[j]).sum();
@@ -1054,6 +1170,7 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
         indirect_fit: fit,
         psnr: crate::eval::psnr_from_mse(se / (3.0 * b as f64)),
         blocked: slots,
+        boundary: vis_v.iter().filter(|&&v| v > 0.0).count(),
         ..Default::default()
     };
     let rgb = per.iter().map(|p| p.rgb.map(|v| v as f32)).collect();
@@ -1231,10 +1348,25 @@ impl SurfaceCache {
         blocked as f64 / self.lobe_traced.iter().sum::<usize>().max(1) as f64
     }
 
+    /// Fraction of the blocked pairs that are boundary lights (`|n'·ξ0| < eps`, see
+    /// [`boundary_visibility`]).
+    pub fn boundary_fraction(&self, eps: f32) -> f64 {
+        let grazing: usize = self
+            .lobe_hits
+            .iter()
+            .zip(&self.traced_axes)
+            .map(|(h, a)| h.iter().filter(|(_, n2)| dot3(f64x3(*n2), f64x3(*a)).abs() < eps as f64).count())
+            .sum();
+        grazing as f64 / self.lobe_hits.iter().map(Vec::len).sum::<usize>().max(1) as f64
+    }
+
     /// The batch of cached points `idx`.
     pub fn batch(&self, idx: &[usize], lobes: usize) -> Stage2Batch {
         let mut b = Stage2Batch::default();
         let traced = self.hit_index.len() == self.len() * lobes;
+        if traced {
+            b.traced_axes = self.traced_axes.clone();
+        }
         for &i in idx {
             b.x.push(self.x[i]);
             b.n.push(self.n[i]);
@@ -1453,6 +1585,8 @@ pub fn render_points(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
             }
         }
     }
+    let slot_lobes: Vec<(usize, [f32; 3])> = owner.iter().zip(&hn).map(|(&(_, kk), &n2)| (kk, n2)).collect();
+    let vis: Vec<f64> = slot_visibility(model, &lobes, &batch.traced_axes, &slot_lobes).iter().map(|v| v.0).collect();
     let w = if model.cfg.indirect == IndirectMode::Mii { Vec::new() } else { model.indirect_weights(backend, &hx, &hn)? };
     let mii = model.mii_lobes_at(backend, &batch.x)?;
     let mut per: Vec<Vec<(usize, usize)>> = vec![Vec::new(); batch.len()];
@@ -1462,7 +1596,7 @@ pub fn render_points(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
     Ok((0..batch.len())
         .into_par_iter()
         .map(|i| {
-            let li = point_lobes(model.cfg.indirect, &lobes, &per[i], &w, &mii[i]);
+            let li = point_lobes(model.cfg.indirect, &lobes, &per[i], &w, &mii[i], &vis);
             let (sp, df) = shade_f64(f64x3(albedo[i]), rough[i] as f64, f64x3(batch.n[i]), f64x3(batch.v[i]), &li);
             [0, 1, 2].map(|c| (sp[c].max(0.0) + df[c].max(0.0)) as f32)
         })
