@@ -171,14 +171,15 @@ fn bench_material_writes_figures_per_variant() {
     stage1(&run);
     let out = dir.path().join("bench");
     let o = pii(&[
-        "bench", "material", "--run", run.to_str().unwrap(), "--out", out.to_str().unwrap(), "--lobes", "4", "--indirect", "ours", "none", "--iterations", "2",
+        "bench", "material", "--run", run.to_str().unwrap(), "--out", out.to_str().unwrap(), "--lobes", "4", "--indirect", "ours", "none", "--boundary", "flowing", "detached", "--iterations", "2",
         "--relight-views", "0", "--set", "points=400", "--set", "batch=32",
     ]);
     assert!(o.status.success(), "{}", text(&o));
     let csv = std::fs::read_to_string(out.join("bench-material.csv")).unwrap();
     let rows: Vec<&str> = csv.lines().skip(1).collect();
-    assert_eq!(rows.len(), 2, "{csv}");
-    assert!(rows[0].starts_with("k4-ours") && rows[1].starts_with("k4-none"), "{csv}");
+    assert_eq!(rows.len(), 4, "{csv}");
+    assert!(rows[0].starts_with("k4-ours,") && rows[1].starts_with("k4-ours-detached,") && rows[3].starts_with("k4-none-detached,"), "{csv}");
+    assert!(rows[1].contains(",detached,") && rows[2].contains(",flowing,"), "{csv}");
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("bench-material.json")).unwrap()).unwrap();
     let r = &json["rows"][0];
     assert!(r["it_per_s"].as_f64().unwrap() > 0.0 && r["heldout_psnr"].as_f64().unwrap().is_finite(), "{r}");

@@ -14,7 +14,7 @@ use serde::Serialize;
 
 use super::material::{train_stage2, MaterialOptions};
 use super::stage1::{Preset, CHECKPOINT, RUN_CONFIG};
-use super::stage2::IndirectMode;
+use super::stage2::{BoundaryMode, IndirectMode};
 use crate::context::Context;
 
 #[derive(Debug, clap::Args)]
@@ -31,6 +31,9 @@ pub struct BenchMaterialArgs {
     /// Indirect modes to measure.
     #[arg(long, value_enum, num_args = 1.., default_values_t = vec![IndirectMode::Ours, IndirectMode::None, IndirectMode::Uniform, IndirectMode::Mii])]
     pub indirect: Vec<IndirectMode>,
+    /// Boundary-light modes to measure (the ablation: `flowing detached`).
+    #[arg(long, value_enum, num_args = 1.., default_values_t = vec![BoundaryMode::Flowing])]
+    pub boundary: Vec<BoundaryMode>,
     /// Stage-2 iterations per variant (default: the preset's).
     #[arg(long)]
     pub iterations: Option<u64>,
@@ -50,6 +53,7 @@ pub struct MaterialRow {
     pub variant: String,
     pub lobes: usize,
     pub indirect: String,
+    pub boundary: String,
     pub backend: String,
     pub iterations: u64,
     pub seconds_cache: f64,
@@ -91,12 +95,13 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
     let has_gt = scene.join("transforms_test.json").is_file() && !maps.is_empty();
     let mut rows = Vec::new();
     for &k in &args.lobes {
-        for &mode in &args.indirect {
-            let variant = format!("k{k}-{}", mode.name());
+        for (&mode, &boundary) in args.indirect.iter().flat_map(|m| args.boundary.iter().map(move |b| (m, b))) {
+            let detached = boundary == BoundaryMode::Detached;
+            let variant = format!("k{k}-{}{}", mode.name(), if detached { "-detached" } else { "" });
             let dir = args.out.join("runs").join(&variant);
             copy_stage1(&args.run, &dir)?;
             ctx.say(format!("bench material: {variant}"));
-            let opts = MaterialOptions { lobes: Some(k), indirect: mode, material_iterations: args.iterations, material_set: args.overrides.clone(), ..Default::default() };
+            let opts = MaterialOptions { lobes: Some(k), indirect: mode, boundary, material_iterations: args.iterations, material_set: args.overrides.clone(), ..Default::default() };
             let r = train_stage2(&scene, args.preset, &opts, 0, &dir, false, None, &backend, ctx)?;
             let rep = &r.report;
             let f = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
@@ -105,6 +110,7 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
                 variant: variant.clone(),
                 lobes: k,
                 indirect: mode.name().to_string(),
+                boundary: if detached { "detached" } else { "flowing" }.to_string(),
                 backend: backend.describe(),
                 iterations: r.trainer.step,
                 seconds_cache: f(&rep["seconds"]["cache"]),
@@ -139,11 +145,11 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
             rows.push(row);
         }
     }
-    let mut csv = String::from("variant,lobes,indirect,backend,iterations,seconds_cache,seconds_train,it_per_s,cache_evaluations,per_batch_evaluations,blocked_fraction,heldout_psnr,albedo_psnr,relit_psnr,roughness_mse,env_relative_l2\n");
+    let mut csv = String::from("variant,lobes,indirect,boundary,backend,iterations,seconds_cache,seconds_train,it_per_s,cache_evaluations,per_batch_evaluations,blocked_fraction,heldout_psnr,albedo_psnr,relit_psnr,roughness_mse,env_relative_l2\n");
     for r in &rows {
         csv.push_str(&format!(
-            "{},{},{},\"{}\",{},{:.3},{:.3},{:.3},{},{},{:.5},{:.3},{:.3},{:.3},{:.5},{:.5}\n",
-            r.variant, r.lobes, r.indirect, r.backend, r.iterations, r.seconds_cache, r.seconds_train, r.it_per_s, r.cache_evaluations, r.per_batch_evaluations, r.blocked_fraction, r.heldout_psnr, r.albedo_psnr, r.relit_psnr, r.roughness_mse, r.env_relative_l2
+            "{},{},{},{},\"{}\",{},{:.3},{:.3},{:.3},{},{},{:.5},{:.3},{:.3},{:.3},{:.5},{:.5}\n",
+            r.variant, r.lobes, r.indirect, r.boundary, r.backend, r.iterations, r.seconds_cache, r.seconds_train, r.it_per_s, r.cache_evaluations, r.per_batch_evaluations, r.blocked_fraction, r.heldout_psnr, r.albedo_psnr, r.relit_psnr, r.roughness_mse, r.env_relative_l2
         ));
     }
     crate::util::atomic_write(&args.out.join("bench-material.csv"), csv.as_bytes())?;
