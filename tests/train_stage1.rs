@@ -348,3 +348,45 @@ fn ablation_switches_cut_only_their_path_into_the_sdf() {
         assert!(diff > 1e-4, "{ls:?}: the SDF gradient did not change ({diff})");
     }
 }
+
+#[test]
+fn appearance_grid_gradient_matches_central_differences() {
+    // The radiance net reads its own hash grid instead of the SDF's feature output: the SDF then
+    // has no feature columns, and the whole pixel (the grid included) still matches central
+    // differences of re-traced renders.
+    let b = Backend::cpu();
+    let mut cfg = tiny_config();
+    cfg.appearance_grid = true;
+    cfg.sizes.grid_finest = 32;
+    cfg.sizes.grid_log2_table = 8;
+    let model = Model::new(&cfg).unwrap();
+    assert_eq!(model.field.config.feature_dim, 0);
+    let grid = model.radiance_split().0.len();
+    assert_eq!(grid, 16 * 256 * 2);
+    let batch = batch();
+    let g = loss_and_grad(&b, &model, &cfg.trace, &batch, &EIK, &pixel_settings(), 0.0).unwrap();
+    assert_eq!(g.stats.surface_rays, 3, "{:?}", g.stats);
+    assert_eq!(g.d_radiance.len(), model.radiance_params.len());
+    let loss = |m: &Model| loss_and_grad(&b, m, &cfg.trace, &batch, &EIK, &pixel_settings(), 0.0).unwrap().stats.loss;
+    let check = |which: &str, analytic: &[f32], idx: &[usize], set: &dyn Fn(&mut Model, usize, f32)| {
+        for &i in idx {
+            let h = 2e-3f32;
+            let (mut mp, mut mm) = (Model::new(&cfg).unwrap(), Model::new(&cfg).unwrap());
+            set(&mut mp, i, h);
+            set(&mut mm, i, -h);
+            let fd = (loss(&mp) - loss(&mm)) / (2.0 * h as f64);
+            let a = analytic[i] as f64;
+            let err = (a - fd).abs() / (1e-3 + 0.05 * fd.abs().max(a.abs()));
+            assert!(err <= 1.0, "{which} param {i}: analytic {a:.6e} vs central difference {fd:.6e}");
+        }
+    };
+    // Grid entries the three surface points touch (and a few they do not), then the MLP and SDF.
+    let touched: Vec<usize> = (0..grid).filter(|&i| g.d_radiance[i].abs() > 1e-6).collect();
+    assert!(touched.len() >= 50, "{} grid entries touched", touched.len());
+    let mut idx: Vec<usize> = touched.iter().step_by((touched.len() / 30).max(1)).copied().collect();
+    idx.extend([0, grid / 2, grid - 1].iter().filter(|i| !touched.contains(i)));
+    idx.extend((grid..model.radiance_params.len()).step_by(((model.radiance_params.len() - grid) / 20).max(1)));
+    check("radiance", &g.d_radiance, &idx, &|m, i, h| m.radiance_params[i] += h);
+    let sdf_idx: Vec<usize> = (0..model.sdf_params.len()).step_by((model.sdf_params.len() / 30).max(1)).collect();
+    check("sdf", &g.d_sdf, &sdf_idx, &|m, i, h| m.sdf_params[i] += h);
+}

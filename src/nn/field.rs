@@ -158,6 +158,19 @@ impl FieldEncoding {
     }
 
     /// The field's encoder: the hash grid is fed with the raw position beside it (NeuS2).
+    /// The project's hash grid: 16 levels × 2 features from base resolution 16 up to `finest`
+    /// cells per axis over `[-1, 1]^3`, `2^log2_table` entries per level.
+    pub fn hash_grid(finest: u32, log2_table: u32) -> Self {
+        let (levels, base) = (16usize, 16u32);
+        FieldEncoding::HashGrid {
+            levels,
+            features_per_level: 2,
+            log2_table_size: log2_table,
+            base_resolution: base,
+            growth: ((finest.max(base + 1) as f32 / base as f32).ln() / (levels - 1) as f32).exp(),
+        }
+    }
+
     pub fn encoder(&self) -> PositionEncoder {
         let raw_xyz = matches!(self, FieldEncoding::HashGrid { .. });
         PositionEncoder { encoding: self.encoding_config(), raw_xyz, active_levels: None }

@@ -36,7 +36,7 @@ use serde::{Deserialize, Serialize};
 use crate::backend::{Backend, BackendError};
 use crate::nn::adam::{AdamConfig, AdamItem, AdamState};
 use crate::nn::encoding::{encoding_forward_cpu, EncodingConfig};
-use crate::nn::field::{FieldEncoding, FieldOutputGrads, FieldOutputs, SdfField, SdfFieldConfig};
+use crate::nn::field::{Encoder, FieldEncoding, FieldOutputGrads, FieldOutputs, PositionEncoder, SdfField, SdfFieldConfig};
 use crate::nn::mlp::{Activation, Init, Mlp, MlpConfig};
 use crate::nn::params::ParamStore;
 use crate::render::{min_sdf_along, sphere_interval, trace, Rays, TraceConfig, TraceMode};
@@ -152,6 +152,11 @@ pub struct Stage1Config {
     /// The SDF is held fixed for this fraction of the run while the radiance net learns the
     /// colours (before that, colour gradients only move the surface at random).
     pub radiance_warmup: f32,
+    /// The radiance net's feature comes from its own hash grid (the SDF grid's sizes), trained at
+    /// the radiance net's rate, instead of from the SDF network's feature output (IDR's, which the
+    /// colour loss then trains inside the SDF's own hash entries: texture learnt as geometry).
+    #[serde(default)]
+    pub appearance_grid: bool,
     pub seed: u64,
     pub checkpoint_every: u64,
     pub downscale: usize,
@@ -178,16 +183,8 @@ impl Stage1Config {
         };
         let trace = TraceConfig::new(mode);
         // The fast preset; the paper preset changes the networks and their training below.
-        let levels = 16u32;
-        let base = 16u32;
         let mut field = SdfFieldConfig::fast();
-        field.encoding = FieldEncoding::HashGrid {
-            levels: levels as usize,
-            features_per_level: 2,
-            log2_table_size: grid_log2_table,
-            base_resolution: base,
-            growth: ((grid_finest as f32 / base as f32).ln() / (levels - 1) as f32).exp(),
-        };
+        field.encoding = FieldEncoding::hash_grid(grid_finest, grid_log2_table);
         field.grad_step = (0.5 * footprint).clamp(5e-4, 5e-3);
         let fast = Self {
             preset,
@@ -228,6 +225,7 @@ impl Stage1Config {
             coarse_levels: if init == InitMode::Hull { 1.0 } else { 0.5 },
             coarse_to_fine_end: 0.5,
             radiance_warmup: 0.1,
+            appearance_grid: false,
             seed: 0,
             checkpoint_every: 100,
             downscale,
@@ -247,6 +245,7 @@ impl Stage1Config {
                 mask_samples: 100,
                 out_of_mask_min_sdf: true,
                 checkpoint_every: 50,
+                appearance_grid: false,
                 ..fast
             },
         }
@@ -297,10 +296,34 @@ impl Stage1Config {
         self.lr_final_factor.powf(frac)
     }
 
+    /// The SDF field's configuration (no feature output when the appearance has its own grid).
+    pub fn sdf_field(&self) -> SdfFieldConfig {
+        let mut f = self.field.clone();
+        if self.appearance_grid {
+            f.feature_dim = 0;
+        }
+        f
+    }
+
+    /// The appearance grid's encoder (the scene's grid sizes, as the SDF's; no raw position), if any.
+    pub fn appearance_encoder(&self) -> Option<PositionEncoder> {
+        if !self.appearance_grid {
+            return None;
+        }
+        let mut e = FieldEncoding::hash_grid(self.sizes.grid_finest, self.sizes.grid_log2_table).encoder();
+        e.raw_xyz = false;
+        Some(e)
+    }
+
+    /// Features the radiance net reads per point.
+    pub fn feature_dim(&self) -> usize {
+        self.appearance_encoder().map_or(self.field.feature_dim, |e| e.out_dim())
+    }
+
     pub fn radiance_mlp(&self) -> MlpConfig {
         let view_dim = 3 * (1 + 2 * self.view_freqs as usize);
         MlpConfig {
-            in_dim: 3 + view_dim + 3 + self.field.feature_dim,
+            in_dim: 3 + view_dim + 3 + self.feature_dim(),
             widths: self.radiance_widths.clone(),
             out_dim: 3,
             activation: Activation::Relu,
@@ -475,17 +498,47 @@ pub struct Model {
     pub field: SdfField,
     pub radiance: Mlp,
     pub view_encoding: EncodingConfig,
+    /// The appearance grid ([`Stage1Config::appearance_grid`]); its parameters lead
+    /// `radiance_params`.
+    pub appearance: Option<PositionEncoder>,
     pub sdf_params: Vec<f32>,
+    /// `[appearance grid, radiance MLP]`.
     pub radiance_params: Vec<f32>,
 }
 
 impl Model {
     pub fn new(cfg: &Stage1Config) -> Result<Self, BackendError> {
-        let field = SdfField::new(cfg.field.clone())?;
+        let field = SdfField::new(cfg.sdf_field())?;
         let radiance = Mlp::new(cfg.radiance_mlp())?;
         let sdf_params = field.init(cfg.seed);
-        let radiance_params = radiance.init(Init::Default, cfg.seed.wrapping_add(17));
-        Ok(Self { field, radiance, view_encoding: EncodingConfig::frequency(cfg.view_freqs), sdf_params, radiance_params })
+        let appearance = cfg.appearance_encoder();
+        let mut radiance_params = appearance.as_ref().map(|e| e.init(cfg.seed.wrapping_add(29))).unwrap_or_default();
+        radiance_params.extend(radiance.init(Init::Default, cfg.seed.wrapping_add(17)));
+        Ok(Self { field, radiance, view_encoding: EncodingConfig::frequency(cfg.view_freqs), appearance, sdf_params, radiance_params })
+    }
+
+    /// `(features the radiance net reads, appearance-grid parameters)`.
+    fn radiance_split_dims(&self) -> (usize, usize) {
+        match &self.appearance {
+            Some(e) => (e.out_dim(), e.num_params()),
+            None => (self.field.config.feature_dim, 0),
+        }
+    }
+
+    /// `(appearance grid, radiance MLP)` parameters.
+    pub fn radiance_split(&self) -> (&[f32], &[f32]) {
+        self.radiance_params.split_at(self.appearance.as_ref().map_or(0, |e| e.num_params()))
+    }
+
+    /// The features the radiance net reads at `x` (`range` of the field outputs `o`).
+    fn features(&self, x: &[[f32; 3]], o: &FieldOutputs, range: std::ops::Range<usize>) -> Vec<f32> {
+        match &self.appearance {
+            Some(e) => e.forward(self.radiance_split().0, bytemuck::cast_slice(x)),
+            None => {
+                let fd = self.field.config.feature_dim;
+                o.feature[fd * range.start..fd * range.end].to_vec()
+            }
+        }
     }
 
     /// SDF values at flattened points.
@@ -500,7 +553,8 @@ impl Model {
     }
 
     fn radiance_input(&self, x: &[[f32; 3]], dirs: &[[f32; 3]], o: &FieldOutputs, range: std::ops::Range<usize>) -> Vec<f32> {
-        let fd = self.field.config.feature_dim;
+        let feat = self.features(x, o, range.clone());
+        let fd = feat.len() / x.len().max(1);
         let view: Vec<f32> = dirs.iter().flat_map(|d| [-d[0], -d[1], -d[2]]).collect();
         let venc = encoding_forward_cpu(&self.view_encoding, &[], &view, 3);
         let vd = venc.len() / dirs.len().max(1);
@@ -509,7 +563,7 @@ impl Model {
             input.extend_from_slice(&x[k]);
             input.extend_from_slice(&venc[k * vd..(k + 1) * vd]);
             input.extend_from_slice(&o.gradient[3 * i..3 * i + 3]);
-            input.extend_from_slice(&o.feature[fd * i..fd * (i + 1)]);
+            input.extend_from_slice(&feat[fd * k..fd * (k + 1)]);
         }
         input
     }
@@ -521,7 +575,7 @@ impl Model {
         }
         let o = self.field.eval_with_gradient(backend, &self.sdf_params, bytemuck::cast_slice(x))?;
         let si = self.radiance_input(x, dirs, &o, 0..x.len());
-        let fwd = backend.mlp_forward(&self.radiance, &backend.upload(&self.radiance_params), &backend.from_vec(si), false)?;
+        let fwd = backend.mlp_forward(&self.radiance, &backend.upload(self.radiance_split().1), &backend.from_vec(si), false)?;
         let out = backend.to_vec(&fwd.output)?;
         Ok(out.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
     }
@@ -665,7 +719,7 @@ pub fn loss_and_grad(
     let inv_b = 1.0 / nrays.max(1) as f64;
     let mut parts = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64); // rgb, eik, mask, sq err, smoothness
     let mut d_radiance: Result<Vec<f32>, BackendError> = Ok(Vec::new());
-    let rad_params = backend.upload(&model.radiance_params);
+    let rad_params = backend.upload(model.radiance_split().1);
     let (_, d_sdf) = model.field.value_and_grad(backend, &model.sdf_params, &pts, |o: &FieldOutputs| {
         let n = ns + nm + ne;
         let fd = model.field.config.feature_dim;
@@ -702,7 +756,9 @@ pub fn loss_and_grad(
                 let grads = backend.mlp_backward(&model.radiance, &rad_params, &fwd, &backend.from_vec(dc))?;
                 let din = backend.to_vec(&grads.d_input)?;
                 let id = model.radiance.in_dim();
-                let vd = id - 6 - fd;
+                let rfd = model.radiance_split_dims().0;
+                let vd = id - 6 - rfd;
+                let mut d_feat = vec![0f32; if model.appearance.is_some() { ns * rfd } else { 0 }];
                 for k in 0..ns {
                     let row = &din[k * id..(k + 1) * id];
                     if ls.normal_gradient_scale != 0.0 {
@@ -710,9 +766,17 @@ pub fn loss_and_grad(
                             g.gradient[3 * k + a] += ls.normal_gradient_scale * row[3 + vd + a];
                         }
                     }
-                    g.feature[k * fd..(k + 1) * fd].copy_from_slice(&row[6 + vd..]);
+                    match model.appearance {
+                        Some(_) => d_feat[k * rfd..(k + 1) * rfd].copy_from_slice(&row[6 + vd..]),
+                        None => g.feature[k * fd..(k + 1) * fd].copy_from_slice(&row[6 + vd..]),
+                    }
                 }
-                backend.to_vec(&grads.d_params)
+                let mut d = match &model.appearance {
+                    Some(e) => e.backward_params(model.radiance_split().0, bytemuck::cast_slice(&x0), &d_feat),
+                    None => Vec::new(),
+                };
+                d.extend(backend.to_vec(&grads.d_params)?);
+                Ok(d)
             })();
             d_radiance = r;
         }

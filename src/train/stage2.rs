@@ -259,14 +259,7 @@ impl Stage2Config {
     /// `2^log2_table` entries per level (stage 1's sizes for the scene), 16 levels × 2 features,
     /// base 16, fed beside the raw position.
     pub fn with_material_grid(mut self, finest: u32, log2_table: u32) -> Self {
-        let (levels, base) = (16usize, 16u32);
-        self.material_encoding = FieldEncoding::HashGrid {
-            levels,
-            features_per_level: 2,
-            log2_table_size: log2_table,
-            base_resolution: base,
-            growth: ((finest.max(base + 1) as f32 / base as f32).ln() / (levels - 1) as f32).exp(),
-        };
+        self.material_encoding = FieldEncoding::hash_grid(finest, log2_table);
         self
     }
 
