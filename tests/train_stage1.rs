@@ -26,6 +26,8 @@ fn tiny_config() -> Stage1Config {
     cfg.radiance_widths = vec![8];
     cfg.view_freqs = 1;
     cfg.seed = 4;
+    // The SDF's own feature feeds the radiance net here (IDR's); the appearance grid has its own test.
+    cfg.appearance_grid = false;
     // Tight tracing so a re-traced point follows the parameters smoothly.
     cfg.trace.threshold = 1e-6;
     cfg.trace.sphere_steps = 60;

@@ -225,7 +225,10 @@ impl Stage1Config {
             coarse_levels: if init == InitMode::Hull { 1.0 } else { 0.5 },
             coarse_to_fine_end: 0.5,
             radiance_warmup: 0.1,
-            appearance_grid: false,
+            // Measured (1000 iterations, `bench train --variant fast-refined-hull`): on the example
+            // Chamfer 0.499% → 0.190%, NC 0.968 → 0.983, held-out 20.0 → 25.5 dB, mask IoU
+            // 0.968 → 0.989 (the hull: 0.301% / 0.978).
+            appearance_grid: true,
             seed: 0,
             checkpoint_every: 100,
             downscale,
