@@ -170,6 +170,23 @@ pub struct Stage2Config {
     /// it is also the half-width in radians of the visibility ramp across the silhouette.
     #[serde(default = "default_boundary_epsilon")]
     pub boundary_epsilon: f32,
+    /// Refine the stage-1 SDF jointly with light and material (`--refine-geometry`; the paper's
+    /// timing table) instead of freezing it (the public code). See [`loss_and_grad_geometry`].
+    #[serde(default)]
+    pub refine_geometry: bool,
+    /// The SDF's Adam rate when refining (0: stage 1's final rate, resolved when the run starts).
+    #[serde(default)]
+    pub lr_geometry: f32,
+    /// Eikonal weight on the refined SDF (at the batch's points and uniform points).
+    #[serde(default = "default_geometry_eikonal")]
+    pub geometry_eikonal_weight: f32,
+    /// Uniform eikonal points per iteration when refining.
+    #[serde(default = "default_geometry_eikonal_points")]
+    pub geometry_eikonal_points: usize,
+    /// When refining, the surface cache (primary points and every secondary hit) is re-traced on
+    /// the moved surface every this many iterations.
+    #[serde(default = "default_geometry_retrace")]
+    pub geometry_retrace_every: u64,
     pub seed: u64,
     pub checkpoint_every: u64,
 }
@@ -216,6 +233,11 @@ impl Stage2Config {
             normal_step_factor: 1.0,
             boundary: BoundaryMode::Flowing,
             boundary_epsilon: default_boundary_epsilon(),
+            refine_geometry: false,
+            lr_geometry: 0.0,
+            geometry_eikonal_weight: default_geometry_eikonal(),
+            geometry_eikonal_points: default_geometry_eikonal_points(),
+            geometry_retrace_every: default_geometry_retrace(),
             seed: 0,
             checkpoint_every: 100,
         }
@@ -241,6 +263,12 @@ impl Stage2Config {
         }
         if !(self.boundary_epsilon >= 0.0 && self.boundary_epsilon < 1.0) {
             return bad("boundary_epsilon must be in [0, 1)");
+        }
+        if !(self.lr_geometry.is_finite() && self.lr_geometry >= 0.0 && self.geometry_eikonal_weight.is_finite() && self.geometry_eikonal_weight >= 0.0) {
+            return bad("lr_geometry and geometry_eikonal_weight must be finite and >= 0");
+        }
+        if self.refine_geometry && self.geometry_retrace_every == 0 {
+            return bad("geometry_retrace_every must be > 0");
         }
         Ok(())
     }
@@ -344,6 +372,18 @@ pub fn apply_overrides(cfg: Stage2Config, overrides: &[String]) -> Result<Stage2
 
 fn default_boundary_epsilon() -> f32 {
     0.0349
+}
+
+fn default_geometry_eikonal() -> f32 {
+    0.1
+}
+
+fn default_geometry_eikonal_points() -> usize {
+    256
+}
+
+fn default_geometry_retrace() -> u64 {
+    200
 }
 
 fn default_mii_lobes() -> usize {
@@ -663,8 +703,13 @@ pub fn point_lobes(mode: IndirectMode, lobes: &[Sg<f64>], blocked: &[(usize, usi
 /// passes `∂v/∂ξ = (I − ξξᵀ)n'/(2ε)`, so the axis learns `(L_env − L_ind)·∂v/∂ξ`, the boundary term
 /// a hard visibility test (and the detached public code) never sees.
 ///
-/// Returns `(v, ∂v/∂(stored axis))` for a boundary light, None otherwise (`ε = 0` turns them off).
-pub fn boundary_visibility(raw_axis: [f64; 3], traced: [f32; 3], n2: [f32; 3], eps: f64, mode: BoundaryMode) -> Option<(f64, [f64; 3])> {
+/// With the geometry refined (`--refine-geometry`), the occluder moves too: `offset` is the
+/// angle it has receded from the ray since the trace, `(f(x';θ) − f(x';θ_traced))/|x' − x|`, added
+/// to `n'·(ξ − ξ0)`.
+///
+/// Returns `(v, ∂v/∂(stored axis), ∂v/∂offset)` for a boundary light, None otherwise (`ε = 0`
+/// turns them off).
+pub fn boundary_visibility(raw_axis: [f64; 3], traced: [f32; 3], n2: [f32; 3], offset: f64, eps: f64, mode: BoundaryMode) -> Option<(f64, [f64; 3], f64)> {
     let a0 = normalize(f64x3(traced));
     let n = f64x3(n2);
     if eps <= 0.0 || !(dot3(n, a0).abs() < eps) {
@@ -673,23 +718,30 @@ pub fn boundary_visibility(raw_axis: [f64; 3], traced: [f32; 3], n2: [f32; 3], e
     let len = dot3(raw_axis, raw_axis).sqrt().max(1e-12);
     let xi = raw_axis.map(|v| v / len);
     let (nx, n0) = (dot3(n, xi), dot3(n, a0));
-    let s = 0.5 + (nx - n0) / (2.0 * eps);
+    let s = 0.5 + (nx - n0 + offset) / (2.0 * eps);
     let mut d = [0.0; 3];
+    let mut d_off = 0.0;
     if mode == BoundaryMode::Flowing && s > 0.0 && s < 1.0 {
         for a in 0..3 {
             d[a] = (n[a] - xi[a] * nx) / (2.0 * eps * len);
         }
+        d_off = 1.0 / (2.0 * eps);
     }
-    Some((s.clamp(0.0, 1.0), d))
+    Some((s.clamp(0.0, 1.0), d, d_off))
 }
 
-/// [`boundary_visibility`] for every slot `(point, lobe k, x', n')` of a batch (`(0, 0)` where the
-/// hit is not a boundary light or the batch does not know the traced axes).
-fn slot_visibility(model: &Stage2Model, lobes: &[Sg<f64>], traced: &[[f32; 3]], slots: &[(usize, [f32; 3])]) -> Vec<(f64, [f64; 3])> {
+/// [`boundary_visibility`] for every slot `(point, lobe k, x', n')` of a batch (`(0, 0, 0)` where
+/// the hit is not a boundary light or the batch does not know the traced axes); `offsets` per
+/// slot (empty: 0).
+fn slot_visibility(model: &Stage2Model, lobes: &[Sg<f64>], traced: &[[f32; 3]], slots: &[(usize, [f32; 3])], offsets: &[f64]) -> Vec<(f64, [f64; 3], f64)> {
     let eps = model.cfg.boundary_epsilon as f64;
     slots
         .iter()
-        .map(|&(kk, n2)| traced.get(kk).and_then(|t| boundary_visibility(lobes[kk].axis, *t, n2, eps, model.cfg.boundary)).unwrap_or((0.0, [0.0; 3])))
+        .enumerate()
+        .map(|(s, &(kk, n2))| {
+            let off = offsets.get(s).copied().unwrap_or(0.0);
+            traced.get(kk).and_then(|t| boundary_visibility(lobes[kk].axis, *t, n2, off, eps, model.cfg.boundary)).unwrap_or((0.0, [0.0; 3], 0.0))
+        })
         .collect()
 }
 
@@ -790,6 +842,27 @@ pub fn shade_grad(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3], lobes:
     (da, dr, dl)
 }
 
+/// Gradient of `Σ_c d_out_c · L_c` for one point with respect to the shading normal (the
+/// geometry refinement's path; masks as [`shade_grad`]).
+pub fn shade_normal_grad(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>], spec: [f64; 3], diff: [f64; 3], d_out: [f64; 3]) -> [f64; 3] {
+    let ws = [0, 1, 2].map(|c| if spec[c] > 0.0 { d_out[c] } else { 0.0 });
+    let wd = [0, 1, 2].map(|c| if diff[c] > 0.0 { d_out[c] } else { 0.0 });
+    type D = Dual<3>;
+    let cst = |x: f64| D { v: x, d: [0.0; 3] };
+    let s = Surface { albedo: albedo.map(cst), roughness: cst(rough), normal: [D::var(n[0], 0), D::var(n[1], 1), D::var(n[2], 2)], view: v.map(cst) };
+    let mut dn = [0.0; 3];
+    for l in lobes {
+        let g = Sg { axis: l.axis.map(cst), lambda: cst(l.lambda), mu: l.mu.map(cst) };
+        let (sp, df) = lobe_contribution(&s, &g);
+        for c in 0..3 {
+            for (a, d) in dn.iter_mut().enumerate() {
+                *d += ws[c] * sp[c].d[a] + wd[c] * df[c].d[a];
+            }
+        }
+    }
+    dn
+}
+
 /// One training batch of cached surface points.
 #[derive(Clone, Debug, Default)]
 pub struct Stage2Batch {
@@ -806,6 +879,12 @@ pub struct Stage2Batch {
     pub mii_targets: Vec<Vec<([f32; 3], [f32; 3])>>,
     /// Per lobe: the unit axis its hits were traced along (empty: no boundary lights).
     pub traced_axes: Vec<[f32; 3]>,
+    /// Per point, beside `hits`: the SDF at each hit when it was traced (`--refine-geometry`; empty
+    /// elsewhere).
+    pub hit_sdf: Vec<Vec<f32>>,
+    /// Per slot (the batch's hits in order): the boundary lights' occluder offset (see
+    /// [`boundary_visibility`]; empty: 0).
+    pub boundary_offset: Vec<f64>,
 }
 
 impl Stage2Batch {
@@ -836,6 +915,9 @@ pub struct Stage2Stats {
     pub kl: f64,
     /// The `mii` baseline's fit of its indirect SGs (0 in other modes).
     pub indirect_fit: f64,
+    /// The refined SDF's eikonal term (`--refine-geometry`; 0 otherwise).
+    #[serde(default)]
+    pub eikonal: f64,
     pub psnr: f64,
     /// Blocked (point, lobe) pairs in the batch.
     pub blocked: usize,
@@ -854,13 +936,25 @@ pub struct Stage2Grads {
     pub d_dec: Vec<Vec<f32>>,
     pub d_light: Vec<f32>,
     pub d_ind: Vec<f32>,
+    /// The refined SDF's parameters (`--refine-geometry`; empty otherwise).
+    pub d_sdf: Vec<f32>,
     /// The batch's render (linear RGB), for figures.
     pub rgb: Vec<[f32; 3]>,
+    /// With [`loss_and_grad_with`]'s `geometry` flag: per point the gradient with respect to the
+    /// shading normal, per slot with respect to the boundary offset.
+    pub d_normal: Vec<[f64; 3]>,
+    pub d_offset: Vec<f64>,
 }
 
 /// Loss and exact gradients of one batch (see the module docs). `noise_seed` draws the latent
 /// perturbation of the smoothness term.
 pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch, w: &Stage2Weights, noise_seed: u64) -> Result<Stage2Grads, BackendError> {
+    loss_and_grad_with(backend, model, batch, w, noise_seed, false)
+}
+
+/// [`loss_and_grad`]; with `geometry` it also returns the gradients with respect to the shading
+/// normals and the boundary offsets (what [`loss_and_grad_geometry`] chains into the SDF).
+pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch, w: &Stage2Weights, noise_seed: u64, geometry: bool) -> Result<Stage2Grads, BackendError> {
     let b = batch.len();
     let k = model.cfg.lobes;
     let ld = model.cfg.latent_dim;
@@ -913,7 +1007,7 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
     }
     let slots = hx.len();
     let slot_lobes: Vec<(usize, [f32; 3])> = slot_of.iter().flatten().map(|&(kk, sl)| (kk, hn[sl])).collect();
-    let vis = slot_visibility(model, &lobes, &batch.traced_axes, &slot_lobes);
+    let vis = slot_visibility(model, &lobes, &batch.traced_axes, &slot_lobes, &batch.boundary_offset);
     let vis_v: Vec<f64> = vis.iter().map(|v| v.0).collect();
     let ind_p = backend.upload(&model.ind_params);
     let (ind_fwd, sig) = if mode == IndirectMode::Ours && slots > 0 {
@@ -948,6 +1042,7 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
         dl: Vec<[f64; 7]>,
         fit: f64,
         d_fit: Vec<[f64; 7]>,
+        dn: [f64; 3],
     }
     let inv3b = 1.0 / (3.0 * b as f64);
     let per: Vec<PointOut> = (0..b)
@@ -970,11 +1065,12 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
                 d_out[c] = e.signum() * inv3b * de;
             }
             let (da, dr, dl) = shade_grad(a, r, n, v, &li, spec, diff, d_out);
+            let dn = if geometry { shade_normal_grad(a, r, n, v, &li, spec, diff, d_out) } else { [0.0; 3] };
             let (fit, d_fit) = match (mii_fwd.is_some(), batch.mii_targets.get(i)) {
                 (true, Some(t)) => mii_fit(&mii_sgs[i], t, fit_scale),
                 _ => (0.0, Vec::new()),
             };
-            PointOut { rgb, loss, se, da, dr, dl, fit, d_fit }
+            PointOut { rgb, loss, se, da, dr, dl, fit, d_fit, dn }
         })
         .collect();
 
@@ -986,6 +1082,7 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
     let mut d_mat = vec![0.0f32; b * 4];
     let mut d_mii = vec![0.0f32; mii_raw.len()];
     let mut fit = 0.0;
+    let mut d_offset = if geometry { vec![0.0f64; slots] } else { Vec::new() };
     for (i, p) in per.iter().enumerate() {
         loss_rgb += p.loss;
         fit += p.fit;
@@ -1015,7 +1112,7 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
         let mut keep = vec![1.0f64; k];
         let mut copy = k + mii_sgs[i].len();
         for &(kk, s) in &slot_of[i] {
-            let (v, dv) = vis[s];
+            let (v, dv, dvo) = vis[s];
             if v <= 0.0 {
                 continue;
             }
@@ -1034,6 +1131,9 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
             }
             for a in 0..3 {
                 d_light[kk * LIGHT_STRIDE + a] += d_v * dv[a];
+            }
+            if let Some(d) = d_offset.get_mut(s) {
+                *d = d_v * dvo;
             }
             keep[kk] = 1.0 - v;
         }
@@ -1167,7 +1267,8 @@ pub fn loss_and_grad(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
         ..Default::default()
     };
     let rgb = per.iter().map(|p| p.rgb.map(|v| v as f32)).collect();
-    Ok(Stage2Grads { stats, d_enc, d_dec, d_light: d_light_f, d_ind, rgb })
+    let d_normal = if geometry { per.iter().map(|p| p.dn).collect() } else { Vec::new() };
+    Ok(Stage2Grads { stats, d_enc, d_dec, d_light: d_light_f, d_ind, d_sdf: Vec::new(), rgb, d_normal, d_offset })
 }
 
 // ---- the surface cache ---------------------------------------------------------------------
@@ -1566,6 +1667,10 @@ impl Stage2Trainer {
 
 /// Render cached-style points (forward): linear RGB per point, given per-point blocked lobes.
 pub fn render_points(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch) -> Result<Vec<[f32; 3]>, BackendError> {
+    Ok(render_points_f64(backend, model, batch)?.into_iter().map(|c| c.map(|v| v as f32)).collect())
+}
+
+fn render_points_f64(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch) -> Result<Vec<[f64; 3]>, BackendError> {
     let (albedo, rough) = model.material(backend, &batch.x)?;
     let lobes = model.lobes();
     let (mut hx, mut hn, mut owner) = (Vec::new(), Vec::new(), Vec::new());
@@ -1579,7 +1684,7 @@ pub fn render_points(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
         }
     }
     let slot_lobes: Vec<(usize, [f32; 3])> = owner.iter().zip(&hn).map(|(&(_, kk), &n2)| (kk, n2)).collect();
-    let vis: Vec<f64> = slot_visibility(model, &lobes, &batch.traced_axes, &slot_lobes).iter().map(|v| v.0).collect();
+    let vis: Vec<f64> = slot_visibility(model, &lobes, &batch.traced_axes, &slot_lobes, &batch.boundary_offset).iter().map(|v| v.0).collect();
     let w = if model.cfg.indirect == IndirectMode::Mii { Vec::new() } else { model.indirect_weights(backend, &hx, &hn)? };
     let mii = model.mii_lobes_at(backend, &batch.x)?;
     let mut per: Vec<Vec<(usize, usize)>> = vec![Vec::new(); batch.len()];
@@ -1591,7 +1696,143 @@ pub fn render_points(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
         .map(|i| {
             let li = point_lobes(model.cfg.indirect, &lobes, &per[i], &w, &mii[i], &vis);
             let (sp, df) = shade_f64(f64x3(albedo[i]), rough[i] as f64, f64x3(batch.n[i]), f64x3(batch.v[i]), &li);
-            [0, 1, 2].map(|c| (sp[c].max(0.0) + df[c].max(0.0)) as f32)
+            [0, 1, 2].map(|c| sp[c].max(0.0) + df[c].max(0.0))
         })
         .collect())
+}
+
+// ---- joint geometry refinement (`--refine-geometry`) ----------------------------------------
+
+/// Stage 2's loss and gradients with the stage-1 SDF `sdf` refined jointly (its gradient in
+/// `d_sdf`). The cached surface points `x0` were traced at an earlier SDF; at the current one each
+/// point is the Newton step along its camera ray `r`, `x = x0 + r·s`, `s = −f(x0)/(∇f(x0)·r)`
+/// (stage 1's implicit surface point; no move where `∇f·r ≥ −0.05`), shaded with the normal
+/// `∇f(x0)/|∇f(x0)|` (turned toward the camera as the cache does). The loss reaches the SDF:
+/// - through the shading normal (the exact gradient of the shading, [`shade_normal_grad`]);
+/// - through the point's move along the ray: the colour term's derivative along `r` is a central
+///   difference of the forward at `x ± ε r` (the material moves with the point; the smoothness and
+///   KL regularisers see the point fixed);
+/// - through the boundary lights: a grazing occluder that recedes from the ray by
+///   `f(x';θ) − f(x';θ_traced)` opens the ray (see [`boundary_visibility`]); with
+///   `--boundary detached` this path is cut as the axis path is;
+/// - plus the eikonal term at the batch's points and `geometry_eikonal_points` uniform ones.
+///
+/// Secondary hits `x'`, `n'` (F_ind's inputs) are held at their traced values between re-traces of
+/// the cache (every `geometry_retrace_every` iterations).
+pub fn loss_and_grad_geometry(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch, w: &Stage2Weights, noise_seed: u64, sdf: &Stage1Model) -> Result<Stage2Grads, BackendError> {
+    const RAY_EPS: f64 = 5e-4;
+    let b = batch.len();
+    let field = &sdf.field;
+    let o = field.eval_with_gradient(backend, &sdf.sdf_params, bytemuck::cast_slice(&batch.x))?;
+    // The moved points and the normals.
+    let mut gb = batch.clone();
+    let mut moves = Vec::with_capacity(b); // (s, g·r, |g|, sign) per point
+    for i in 0..b {
+        let g = [0, 1, 2].map(|a| o.gradient[3 * i + a] as f64);
+        let v = f64x3(batch.v[i]);
+        let r = v.map(|c| -c);
+        let gr = dot3(g, r);
+        let f = o.sdf[i] as f64;
+        let s = if gr < -0.05 { -f / gr } else { 0.0 };
+        let len = dot3(g, g).sqrt().max(1e-12);
+        let sign = if dot3(g, v) < 0.0 { -1.0 } else { 1.0 };
+        gb.x[i] = [0, 1, 2].map(|a| (batch.x[i][a] as f64 + r[a] * s) as f32);
+        gb.n[i] = g.map(|c| (sign * c / len) as f32);
+        moves.push((s, gr, len, sign));
+    }
+    // Boundary offsets: how far each hit's occluder has receded from its ray since the trace.
+    let mut owner = Vec::new();
+    let mut hit_pts: Vec<f32> = Vec::new();
+    let mut f0 = Vec::new();
+    if model.cfg.indirect != IndirectMode::None {
+        for (i, hs) in batch.hits.iter().enumerate() {
+            for (j, &(_, x2, _)) in hs.iter().enumerate() {
+                owner.push(i);
+                hit_pts.extend_from_slice(&x2);
+                f0.push(batch.hit_sdf.get(i).and_then(|h| h.get(j)).copied().unwrap_or(0.0) as f64);
+            }
+        }
+    }
+    let hit_f = if hit_pts.is_empty() { Vec::new() } else { sdf.sdf(backend, &hit_pts)? };
+    let hit_t: Vec<f64> = owner
+        .iter()
+        .enumerate()
+        .map(|(s, &i)| {
+            let d: [f64; 3] = [0, 1, 2].map(|a| (hit_pts[3 * s + a] - batch.x[i][a]) as f64);
+            dot3(d, d).sqrt().max(1e-3)
+        })
+        .collect();
+    gb.boundary_offset = (0..owner.len()).map(|s| (hit_f[s] as f64 - f0[s]) / hit_t[s]).collect();
+
+    let mut out = loss_and_grad_with(backend, model, &gb, w, noise_seed, true)?;
+    // The colour term's derivative along each ray.
+    let inv3b = 1.0 / (3.0 * b as f64);
+    let rgb_loss = |x: &Stage2Batch| -> Result<Vec<f64>, BackendError> {
+        let c = render_points_f64(backend, model, x)?;
+        Ok(c.iter().zip(&x.target).map(|(c, t)| (0..3).map(|k| (srgb_with_derivative(c[k]).0 - t[k] as f64).abs() * inv3b).sum()).collect())
+    };
+    let shifted = |sign: f64| {
+        let mut x = gb.clone();
+        for i in 0..b {
+            let v = f64x3(batch.v[i]);
+            x.x[i] = [0, 1, 2].map(|a| (gb.x[i][a] as f64 - sign * RAY_EPS * v[a]) as f32);
+        }
+        x
+    };
+    let (lp, lm) = (rgb_loss(&shifted(1.0))?, rgb_loss(&shifted(-1.0))?);
+    let ds: Vec<f64> = lp.iter().zip(&lm).map(|(p, m)| (p - m) / (2.0 * RAY_EPS)).collect();
+
+    // Uniform eikonal points (drawn from the step's seed).
+    let mut rng = crate::util::rng(noise_seed ^ 0xE1C0);
+    let bound = 1.0f32;
+    let ne = model.cfg.geometry_eikonal_points;
+    let mut pts: Vec<f32> = bytemuck::cast_slice(&batch.x).to_vec();
+    pts.extend_from_slice(&hit_pts);
+    for _ in 0..3 * ne {
+        pts.push(rng.random_range(-bound..bound));
+    }
+    let nh = owner.len();
+    let we = model.cfg.geometry_eikonal_weight as f64;
+    let (eik, d_sdf) = field.value_and_grad(backend, &sdf.sdf_params, &pts, |o| {
+        let n = b + nh + ne;
+        let mut g = crate::nn::field::FieldOutputGrads { sdf: vec![0.0; n], gradient: vec![0.0; 3 * n], feature: Vec::new() };
+        for i in 0..b {
+            let (s, gr, len, sign) = moves[i];
+            let gv = [0, 1, 2].map(|a| o.gradient[3 * i + a] as f64);
+            let r = f64x3(batch.v[i]).map(|c| -c);
+            let dn = out.d_normal[i];
+            let gh = gv.map(|c| c / len);
+            let proj = dot3(gh, dn);
+            for a in 0..3 {
+                g.gradient[3 * i + a] += (sign * (dn[a] - gh[a] * proj) / len) as f32;
+            }
+            if gr < -0.05 {
+                let f = -s * gr;
+                g.sdf[i] += (ds[i] * (-1.0 / gr)) as f32;
+                for a in 0..3 {
+                    g.gradient[3 * i + a] += (ds[i] * f * r[a] / (gr * gr)) as f32;
+                }
+            }
+        }
+        for k in 0..nh {
+            g.sdf[b + k] += (out.d_offset[k] / hit_t[k]) as f32;
+        }
+        let eik_idx: Vec<usize> = (0..b).chain(b + nh..n).collect();
+        let inv_e = 1.0 / eik_idx.len().max(1) as f64;
+        let mut loss = 0.0;
+        for &i in &eik_idx {
+            let gr = [0, 1, 2].map(|a| o.gradient[3 * i + a] as f64);
+            let len = dot3(gr, gr).sqrt();
+            loss += we * (len - 1.0).powi(2) * inv_e;
+            let c = we * 2.0 * (len - 1.0) / len.max(1e-12) * inv_e;
+            for a in 0..3 {
+                g.gradient[3 * i + a] += (c * gr[a]) as f32;
+            }
+        }
+        (loss, g)
+    })?;
+    out.stats.eikonal = eik;
+    out.stats.loss += eik;
+    out.d_sdf = d_sdf;
+    Ok(out)
 }
