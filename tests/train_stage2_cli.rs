@@ -171,15 +171,16 @@ fn bench_material_writes_figures_per_variant() {
     stage1(&run);
     let out = dir.path().join("bench");
     let o = pii(&[
-        "bench", "material", "--run", run.to_str().unwrap(), "--out", out.to_str().unwrap(), "--lobes", "4", "--indirect", "ours", "none", "--boundary", "flowing", "detached", "--iterations", "2",
+        "bench", "material", "--run", run.to_str().unwrap(), "--out", out.to_str().unwrap(), "--lobes", "4", "--indirect", "ours", "none", "--boundary", "flowing", "detached", "--geometry", "frozen", "refined", "--iterations", "2",
         "--relight-views", "0", "--set", "points=400", "--set", "batch=32",
     ]);
     assert!(o.status.success(), "{}", text(&o));
     let csv = std::fs::read_to_string(out.join("bench-material.csv")).unwrap();
     let rows: Vec<&str> = csv.lines().skip(1).collect();
-    assert_eq!(rows.len(), 4, "{csv}");
-    assert!(rows[0].starts_with("k4-ours,") && rows[1].starts_with("k4-ours-detached,") && rows[3].starts_with("k4-none-detached,"), "{csv}");
-    assert!(rows[1].contains(",detached,") && rows[2].contains(",flowing,"), "{csv}");
+    assert_eq!(rows.len(), 8, "{csv}");
+    let names: Vec<&str> = rows.iter().map(|r| r.split(',').next().unwrap()).collect();
+    assert_eq!(names, ["k4-ours", "k4-ours-refined", "k4-ours-detached", "k4-ours-detached-refined", "k4-none", "k4-none-refined", "k4-none-detached", "k4-none-detached-refined"], "{csv}");
+    assert!(rows[2].contains(",detached,frozen,") && rows[1].contains(",flowing,refined,"), "{csv}");
     let json: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("bench-material.json")).unwrap()).unwrap();
     let r = &json["rows"][0];
     assert!(r["it_per_s"].as_f64().unwrap() > 0.0 && r["heldout_psnr"].as_f64().unwrap().is_finite(), "{r}");
@@ -235,4 +236,37 @@ fn ctrl_c_in_stage_two_writes_a_checkpoint_and_resume_continues() {
     let o = stage2(&run, &["--material-iterations", &n, "--resume"]);
     assert!(o.status.success(), "{}", text(&o));
     assert_eq!(curve(&run).len() as u64, step + 2);
+}
+
+#[test]
+fn refined_geometry_trains_resumes_and_exports_the_refined_surface() {
+    // --refine-geometry: the SDF learns in stage 2, the cache is rebuilt on the moved surface, the
+    // refined SDF is checkpointed (a run stopped at a rebuild step resumes exactly) and exported.
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    stage1(&a);
+    copy_dir(&a, &b);
+    let extra = ["--material-iterations", "4", "--refine-geometry", "--material-set", "geometry_retrace_every=2", "--material-set", "lr_geometry=1e-3"];
+    let o = stage2(&a, &extra);
+    assert!(o.status.success(), "{}", text(&o));
+    let o = stage2(&b, &[extra.as_slice(), &["--stop-at", "2"]].concat());
+    assert!(o.status.success(), "{}", text(&o));
+    let o = stage2(&b, &[extra.as_slice(), &["--resume"]].concat());
+    assert!(o.status.success(), "{}", text(&o));
+    assert_eq!(curve(&a), curve(&b), "a resumed refined run follows the straight run");
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("material_report.json")).unwrap()).unwrap();
+    let g = &report["geometry"];
+    assert_eq!(g["refined"], true, "{g}");
+    assert_eq!(g["cache_rebuilds"], 1, "{g}");
+    assert!(report["last"]["eikonal"].as_f64().unwrap() > 0.0, "{}", report["last"]);
+    // The refined SDF is in the stage-2 checkpoint and differs from stage 1's.
+    let st = pii_bake::nn::params::ParamStore::load(&a.join("material.safetensors")).unwrap();
+    let s1 = pii_bake::nn::params::ParamStore::load(&a.join("checkpoint.safetensors")).unwrap();
+    let (r, o1) = (st.data("sdf").unwrap(), s1.data("sdf").unwrap());
+    assert_eq!(r.len(), o1.len());
+    assert!(r.iter().zip(o1).any(|(p, q)| p != q));
+    let asset = dir.path().join("asset");
+    let o = pii(&["export", "--run", a.to_str().unwrap(), "--out", asset.to_str().unwrap(), "--resolution", "32", "--texture", "64"]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(asset.read_dir().unwrap().any(|e| e.unwrap().path().extension().is_some_and(|x| x == "glb")));
 }

@@ -34,6 +34,9 @@ pub struct BenchMaterialArgs {
     /// Boundary-light modes to measure (the ablation: `flowing detached`).
     #[arg(long, value_enum, num_args = 1.., default_values_t = vec![BoundaryMode::Flowing])]
     pub boundary: Vec<BoundaryMode>,
+    /// Geometry in stage 2 (the ablation: `frozen refined`).
+    #[arg(long, value_enum, num_args = 1.., default_values_t = vec![GeometryVariant::Frozen])]
+    pub geometry: Vec<GeometryVariant>,
     /// Stage-2 iterations per variant (default: the preset's).
     #[arg(long)]
     pub iterations: Option<u64>,
@@ -48,12 +51,22 @@ pub struct BenchMaterialArgs {
     pub overrides: Vec<String>,
 }
 
+/// Stage 2's geometry, as a bench variant.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum GeometryVariant {
+    /// Stage 1's SDF, frozen (the public code).
+    Frozen,
+    /// Refined jointly (`--refine-geometry`).
+    Refined,
+}
+
 #[derive(Clone, Debug, Serialize)]
 pub struct MaterialRow {
     pub variant: String,
     pub lobes: usize,
     pub indirect: String,
     pub boundary: String,
+    pub geometry: String,
     pub backend: String,
     pub iterations: u64,
     pub seconds_cache: f64,
@@ -95,13 +108,15 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
     let has_gt = scene.join("transforms_test.json").is_file() && !maps.is_empty();
     let mut rows = Vec::new();
     for &k in &args.lobes {
-        for (&mode, &boundary) in args.indirect.iter().flat_map(|m| args.boundary.iter().map(move |b| (m, b))) {
+        let combos = args.indirect.iter().flat_map(|m| args.boundary.iter().flat_map(move |b| args.geometry.iter().map(move |g| (*m, *b, *g))));
+        for (mode, boundary, geometry) in combos {
             let detached = boundary == BoundaryMode::Detached;
-            let variant = format!("k{k}-{}{}", mode.name(), if detached { "-detached" } else { "" });
+            let refined = geometry == GeometryVariant::Refined;
+            let variant = format!("k{k}-{}{}{}", mode.name(), if detached { "-detached" } else { "" }, if refined { "-refined" } else { "" });
             let dir = args.out.join("runs").join(&variant);
             copy_stage1(&args.run, &dir)?;
             ctx.say(format!("bench material: {variant}"));
-            let opts = MaterialOptions { lobes: Some(k), indirect: mode, boundary, material_iterations: args.iterations, material_set: args.overrides.clone(), ..Default::default() };
+            let opts = MaterialOptions { lobes: Some(k), indirect: mode, boundary, refine_geometry: refined, material_iterations: args.iterations, material_set: args.overrides.clone(), ..Default::default() };
             let r = train_stage2(&scene, args.preset, &opts, 0, &dir, false, None, &backend, ctx)?;
             let rep = &r.report;
             let f = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
@@ -111,6 +126,7 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
                 lobes: k,
                 indirect: mode.name().to_string(),
                 boundary: if detached { "detached" } else { "flowing" }.to_string(),
+                geometry: if refined { "refined" } else { "frozen" }.to_string(),
                 backend: backend.describe(),
                 iterations: r.trainer.step,
                 seconds_cache: f(&rep["seconds"]["cache"]),
@@ -145,11 +161,11 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
             rows.push(row);
         }
     }
-    let mut csv = String::from("variant,lobes,indirect,boundary,backend,iterations,seconds_cache,seconds_train,it_per_s,cache_evaluations,per_batch_evaluations,blocked_fraction,heldout_psnr,albedo_psnr,relit_psnr,roughness_mse,env_relative_l2\n");
+    let mut csv = String::from("variant,lobes,indirect,boundary,geometry,backend,iterations,seconds_cache,seconds_train,it_per_s,cache_evaluations,per_batch_evaluations,blocked_fraction,heldout_psnr,albedo_psnr,relit_psnr,roughness_mse,env_relative_l2\n");
     for r in &rows {
         csv.push_str(&format!(
-            "{},{},{},{},\"{}\",{},{:.3},{:.3},{:.3},{},{},{:.5},{:.3},{:.3},{:.3},{:.5},{:.5}\n",
-            r.variant, r.lobes, r.indirect, r.boundary, r.backend, r.iterations, r.seconds_cache, r.seconds_train, r.it_per_s, r.cache_evaluations, r.per_batch_evaluations, r.blocked_fraction, r.heldout_psnr, r.albedo_psnr, r.relit_psnr, r.roughness_mse, r.env_relative_l2
+            "{},{},{},{},{},\"{}\",{},{:.3},{:.3},{:.3},{},{},{:.5},{:.3},{:.3},{:.3},{:.5},{:.5}\n",
+            r.variant, r.lobes, r.indirect, r.boundary, r.geometry, r.backend, r.iterations, r.seconds_cache, r.seconds_train, r.it_per_s, r.cache_evaluations, r.per_batch_evaluations, r.blocked_fraction, r.heldout_psnr, r.albedo_psnr, r.relit_psnr, r.roughness_mse, r.env_relative_l2
         ));
     }
     crate::util::atomic_write(&args.out.join("bench-material.csv"), csv.as_bytes())?;

@@ -49,6 +49,10 @@ pub struct MaterialOptions {
     /// the light (ours), `detached` keeps them in the colour without gradient (the public code).
     #[arg(long, value_enum, default_value_t = BoundaryMode::Flowing)]
     pub boundary: BoundaryMode,
+    /// Refine the stage-1 SDF jointly with light and material (the paper's timing table) instead of
+    /// freezing it (the public code's); the export then meshes the refined SDF.
+    #[arg(long)]
+    pub refine_geometry: bool,
     /// Stage-2 iterations (default: the preset's).
     #[arg(long)]
     pub material_iterations: Option<u64>,
@@ -62,7 +66,7 @@ pub struct MaterialOptions {
 
 impl Default for MaterialOptions {
     fn default() -> Self {
-        Self { lobes: None, indirect: IndirectMode::Ours, decoder: None, roughness: RoughnessMode::Field, boundary: BoundaryMode::Flowing, material_iterations: None, material_batch: None, material_set: Vec::new() }
+        Self { lobes: None, indirect: IndirectMode::Ours, decoder: None, roughness: RoughnessMode::Field, boundary: BoundaryMode::Flowing, refine_geometry: false, material_iterations: None, material_batch: None, material_set: Vec::new() }
     }
 }
 
@@ -111,6 +115,7 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, opts: &Ma
     cfg.indirect = opts.indirect;
     cfg.roughness = opts.roughness;
     cfg.boundary = opts.boundary;
+    cfg.refine_geometry = opts.refine_geometry;
     let synthetic = matches!(format, Format::Transforms);
     cfg.decoder = opts.decoder.unwrap_or(if synthetic { DecoderMode::Separate } else { DecoderMode::Shared });
     if let Some(k) = opts.lobes {
@@ -148,6 +153,10 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     let (mut cfg, why) = stage2_config(preset, scene.format, &data, opts, seed)?;
     let mut curve = Vec::new();
     let resuming = resume && run_dir.join(CHECKPOINT2).is_file();
+    if cfg.refine_geometry && cfg.lr_geometry <= 0.0 {
+        // Continue at the rate stage 1 ended with.
+        cfg.lr_geometry = s1.trainer.cfg.lr_field * s1.trainer.cfg.lr_final_factor;
+    }
     let (mut trainer, traced) = if resuming {
         let (mut t, _, traced) = Stage2Trainer::load(run_dir, Some(&key))?;
         if t.cfg().preset != preset {
@@ -163,25 +172,26 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         (Stage2Trainer::new(&cfg)?, Vec::new())
     };
     cfg = trainer.cfg().clone();
-    let sdf = &s1.trainer.model;
-    let tc = &s1.trainer.cfg.trace;
+    let tc = s1.trainer.cfg.trace.clone();
+    // The geometry: stage 1's SDF, refined in place with `--refine-geometry` (a resumed run
+    // continues from its refined SDF).
+    let mut s1 = s1;
+    trainer.geometry_into(&mut s1.trainer.model).map_err(|e| DataError::new(&run_dir.join(CHECKPOINT2), e.to_string()))?;
+    let mut geom = s1.trainer.model;
 
-    // The surface cache: primary points once; secondary hits per lobe.
+    // The surface cache: primary points once; secondary hits per lobe (all re-traced every
+    // `geometry_retrace_every` iterations while the geometry is refined).
     let tcache = Instant::now();
-    let mut cache = SurfaceCache::build(backend, sdf, tc, &data, cfg.points, cfg.seed, super::stage2::normal_step(sdf, &cfg))?;
+    // A resumed frozen run re-traces along the axes it had traced; a refined one rebuilds the cache
+    // on its refined surface along the current axes, as the run it continues did at its last
+    // rebuild (so a run stopped at a rebuild step resumes exactly).
+    let axes0 = if traced.len() == cfg.lobes && !cfg.refine_geometry { traced } else { trainer.model.axes() };
+    let mut cache = build_cache(backend, &geom, &tc, &data, &cfg, axes0, ctx)?;
     if cache.len() < 16 {
         return Err(DataError::new(scene_path, format!("only {} masked training pixels reach the stage-1 surface: the geometry does not match the masks (retrain stage 1)", cache.len())).into());
     }
-    let pb = ctx.progress(cfg.lobes as u64, "tracing toward lobes");
-    if cfg.indirect != IndirectMode::None {
-        let axes = if traced.len() == cfg.lobes { traced } else { trainer.model.axes() };
-        for (k, a) in axes.iter().enumerate() {
-            cache.trace_lobe(backend, sdf, &cfg, k, *a)?;
-            pb.set_position(k as u64 + 1);
-        }
-    }
-    pb.finish_and_clear();
     let seconds_cache = tcache.elapsed().as_secs_f64();
+    let mut geometry_retraces = 0usize;
     ctx.say(format!(
         "stage 2 ({} preset, indirect {}, {} decoder): {} lobes, {} cached surface points, {:.1}% of (point, lobe above the horizon) pairs blocked, {:.2}% of the blocked ones boundary lights (boundary gradient {}); cache traced once in {:.1} s ({} field evaluations) — without it every iteration would trace {} rays",
         cfg.preset.name(),
@@ -208,9 +218,13 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     while trainer.step < end {
         let ts = Instant::now();
         let tr = Instant::now();
-        cache.refresh(backend, sdf, &cfg, &trainer.model.axes())?;
+        if cfg.refine_geometry && trainer.step > step0 && trainer.step % cfg.geometry_retrace_every == 0 {
+            cache = build_cache(backend, &geom, &tc, &data, &cfg, trainer.model.axes(), ctx)?;
+            geometry_retraces += 1;
+        }
+        cache.refresh(backend, &geom, &cfg, &trainer.model.axes())?;
         retrace_s += tr.elapsed().as_secs_f64();
-        let s = trainer.train_step(backend, &cache)?;
+        let s = trainer.train_step_with(backend, &cache, Some(&mut geom))?;
         curve.push(curve_line(&s, ts.elapsed().as_secs_f64()));
         let its = (trainer.step - step0) as f64 / t_loop.elapsed().as_secs_f64().max(1e-9);
         pb.set_position(trainer.step);
@@ -219,7 +233,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         last = s;
         let interrupted = stop.load(Ordering::SeqCst);
         if trainer.step % cfg.checkpoint_every == 0 || trainer.step == end || interrupted {
-            trainer.save(run_dir, &key, &cache.traced_axes)?;
+            trainer.save_with(run_dir, &key, &cache.traced_axes, Some(&geom))?;
             write_curve(&run_dir.join(CURVE2), CURVE2_HEADER, &curve)?;
         }
         if interrupted {
@@ -236,7 +250,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     }
     pb.finish_and_clear();
     if trainer.step == step0 {
-        trainer.save(run_dir, &key, &cache.traced_axes)?;
+        trainer.save_with(run_dir, &key, &cache.traced_axes, Some(&geom))?;
         write_curve(&run_dir.join(CURVE2), CURVE2_HEADER, &curve)?;
     }
     let seconds_train = t_loop.elapsed().as_secs_f64();
@@ -248,7 +262,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     let mut per_view = Vec::new();
     let (mut se, mut wsum) = (0.0f64, 0.0f64);
     for v in &eval_views {
-        let img = render_view(backend, sdf, tc, &trainer.model, &v.camera, 80 * 80, None)?;
+        let img = render_view(backend, &geom, &tc, &trainer.model, &v.camera, 80 * 80, None)?;
         let (mut vse, mut vw) = (0.0, 0.0);
         for (k, &p) in img.pixel_index.iter().enumerate() {
             if let Some(e) = masked_srgb_error(v, p, img.rgb[k].map(crate::image_io::linear_to_srgb)) {
@@ -287,6 +301,11 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "sizes": { "lobes": cfg.lobes, "lobes_without_energy": idle, "points": cache.len(), "batch": cfg.batch, "parameters": trainer.model.num_params(), "why": why },
         "cache": { "points": cache.len(), "blocked_fraction": cache.blocked_fraction(), "boundary_fraction": cache.boundary_fraction(cfg.boundary_epsilon), "field_evaluations": cache.evaluations, "seconds": seconds_cache, "lobes_retraced": cache.retraced, "seconds_retracing": retrace_s,
                    "rays_per_iteration_without_cache": cfg.secondary_rays_per_batch() },
+        "geometry": if cfg.refine_geometry {
+            serde_json::json!({ "refined": true, "lr": cfg.lr_geometry, "eikonal_weight": cfg.geometry_eikonal_weight, "cache_rebuilds": geometry_retraces, "retrace_every": cfg.geometry_retrace_every, "last_eikonal": last.eikonal })
+        } else {
+            serde_json::json!({ "refined": false, "why": "frozen at stage 1's SDF (the public code); `--refine-geometry` refines it jointly" })
+        },
         "steps": trainer.step,
         "skipped_steps": trainer.skipped,
         "last": last,
@@ -310,6 +329,9 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         cfg.lobes,
         if flags.is_empty() { String::new() } else { format!(" — WEAK RESULT: {}", flags.join("; ")) }
     ));
+    if cfg.refine_geometry {
+        trainer.refined_sdf = Some(geom.sdf_params.clone());
+    }
     Ok(Stage2Run { trainer, report })
 }
 
@@ -331,6 +353,31 @@ pub struct RenderedView {
 /// Render `camera` at no more than `max_pixels` pixels (every `step`-th pixel, as `evaluate_views`),
 /// or at full size with `max_pixels = 0`. `env`: another environment (normalised frame) to
 /// relight with; None = the learned one with the learned indirect light.
+/// Trace the surface cache on `sdf` and every lobe along `axes` (with a progress bar).
+fn build_cache(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, data: &TrainData, cfg: &Stage2Config, axes: Vec<[f32; 3]>, ctx: &Context) -> Result<SurfaceCache, BackendError> {
+    let mut cache = SurfaceCache::build(backend, sdf, tc, data, cfg.points, cfg.seed, super::stage2::normal_step(sdf, cfg))?;
+    if cache.len() >= 16 && cfg.indirect != IndirectMode::None {
+        let pb = ctx.progress(cfg.lobes as u64, "tracing toward lobes");
+        for (k, a) in axes.iter().enumerate() {
+            cache.trace_lobe(backend, sdf, cfg, k, *a)?;
+            pb.set_position(k as u64 + 1);
+        }
+        pb.finish_and_clear();
+    }
+    Ok(cache)
+}
+
+/// The geometry a stage-2 run shades: stage 1's SDF, or its refinement (`--refine-geometry`).
+pub fn stage2_geometry(s1: &Trainer, s2: &Stage2Trainer) -> anyhow::Result<Option<Stage1Model>> {
+    if s2.refined_sdf.is_none() {
+        return Ok(None);
+    }
+    let mut m = Stage1Model::new(&s1.cfg)?;
+    m.radiance_params.clone_from(&s1.model.radiance_params);
+    s2.geometry_into(&mut m)?;
+    Ok(Some(m))
+}
+
 pub fn render_view(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, model: &Stage2Model, camera: &Camera, max_pixels: usize, env: Option<&[Sg<f64>]>) -> Result<RenderedView, BackendError> {
     let (rays, pixel_index) = subsampled_rays(camera, max_pixels);
     let mut out = RenderedView { width: camera.width, height: camera.height, pixel_index, ..Default::default() };
@@ -452,7 +499,8 @@ impl MaterialField for LearnedMaterial<'_> {
 pub fn export_stage2(backend: &Backend, s1: &Trainer, s2: &Stage2Trainer, rs: &RunScene, asset: &AssetArgs, default_name: &str, ctx: &Context) -> anyhow::Result<ExportReport> {
     let rotation = DMat3::from_cols_array(&rs.rotation);
     let cfg = &s1.cfg;
-    let sdf = TrainedSdf::new(backend, &s1.model, rotation).context("meshing the trained SDF")?;
+    let refined = stage2_geometry(s1, s2)?;
+    let sdf = TrainedSdf::new(backend, refined.as_ref().unwrap_or(&s1.model), rotation).context("meshing the trained SDF")?;
     let material = LearnedMaterial { model: &s2.model, rotation, feature: 16.0 * cfg.sizes.pixel_footprint };
     let ecfg = ExportConfig {
         name: asset.name.clone().unwrap_or_else(|| default_name.to_string()),

@@ -1291,6 +1291,8 @@ pub struct SurfaceCache {
     pub lobe_radiance: Vec<Vec<[f32; 3]>>,
     /// Whether `lobe_radiance` was traced (the `mii` baseline).
     pub radiance_traced: bool,
+    /// `--refine-geometry` only: beside each hit of `lobe_hits`, the SDF there when it was traced.
+    pub lobe_hit_sdf: Vec<Vec<f32>>,
     /// Secondary rays traced per lobe (points with the lobe above their horizon).
     pub lobe_traced: Vec<usize>,
     /// Field evaluations spent tracing (primary, secondary, normals).
@@ -1371,6 +1373,7 @@ impl SurfaceCache {
             self.hit_index = vec![u32::MAX; self.len() * kk];
             self.lobe_hits = vec![Vec::new(); kk];
             self.lobe_radiance = vec![Vec::new(); kk];
+            self.lobe_hit_sdf = vec![Vec::new(); kk];
             self.lobe_traced = vec![0; kk];
             self.traced_axes = vec![[0.0; 3]; kk];
         }
@@ -1400,6 +1403,12 @@ impl SurfaceCache {
             let rgb = sdf.colour(backend, &hit_pts, &vec![axis; hit_pts.len()])?;
             self.evaluations += 7 * hit_pts.len();
             rgb.iter().map(|c| c.map(crate::image_io::srgb_to_linear)).collect()
+        } else {
+            Vec::new()
+        };
+        self.lobe_hit_sdf[k] = if cfg.refine_geometry && !hit_pts.is_empty() {
+            self.evaluations += hit_pts.len();
+            sdf.sdf(backend, bytemuck::cast_slice(&hit_pts))?
         } else {
             Vec::new()
         };
@@ -1467,16 +1476,19 @@ impl SurfaceCache {
             b.v.push(self.v[i]);
             b.target.push(self.target[i]);
             let mut h = Vec::new();
+            let mut hf = Vec::new();
             if traced {
                 for k in 0..lobes {
                     let j = self.hit_index[i * lobes + k];
                     if j != u32::MAX {
                         let (x2, n2) = self.lobe_hits[k][j as usize];
                         h.push((k, x2, n2));
+                        hf.push(self.lobe_hit_sdf[k].get(j as usize).copied().unwrap_or(0.0));
                     }
                 }
             }
             b.hits.push(h);
+            b.hit_sdf.push(hf);
             if traced && self.radiance_traced {
                 let n = f64x3(self.n[i]);
                 let t = (0..lobes)
@@ -1508,6 +1520,11 @@ pub struct Stage2Trainer {
     adam_dec: Vec<AdamState>,
     adam_light: AdamState,
     adam_ind: AdamState,
+    /// The refined SDF's Adam state (`--refine-geometry`; created with the first step).
+    adam_sdf: Option<AdamState>,
+    /// The refined SDF read from a checkpoint (`--refine-geometry`), to load into the stage-1
+    /// model ([`Stage2Trainer::geometry_into`]).
+    pub refined_sdf: Option<Vec<f32>>,
     pub step: u64,
     pub skipped: u64,
     host: Backend,
@@ -1522,6 +1539,8 @@ impl Stage2Trainer {
             adam_dec: model.dec_params.iter().map(|p| AdamState::new(&host, p.len())).collect(),
             adam_light: AdamState::new(&host, model.light.len()),
             adam_ind: AdamState::new(&host, model.ind_params.len()),
+            adam_sdf: None,
+            refined_sdf: None,
             model,
             step: 0,
             skipped: 0,
@@ -1544,7 +1563,12 @@ impl Stage2Trainer {
 
     /// Apply gradients; a step with any non-finite value is skipped and counted.
     pub fn apply(&mut self, g: Stage2Grads) -> Result<(bool, f64), BackendError> {
-        let all = g.d_enc.iter().chain(g.d_dec.iter().flatten()).chain(&g.d_light).chain(&g.d_ind);
+        self.apply_with(g, None)
+    }
+
+    /// [`Stage2Trainer::apply`], the SDF's gradient (if any) to `geometry`'s parameters.
+    pub fn apply_with(&mut self, mut g: Stage2Grads, geometry: Option<&mut Stage1Model>) -> Result<(bool, f64), BackendError> {
+        let all = g.d_enc.iter().chain(g.d_dec.iter().flatten()).chain(&g.d_light).chain(&g.d_ind).chain(&g.d_sdf);
         let norm2: f64 = all.clone().map(|&v| (v as f64) * (v as f64)).sum();
         if !norm2.is_finite() || !g.stats.loss.is_finite() {
             self.skipped += 1;
@@ -1554,14 +1578,14 @@ impl Stage2Trainer {
         let (lm, ll, li) = (self.cfg().lr_material * f, self.cfg().lr_light * f, self.cfg().lr_indirect * f);
         let cfg = AdamConfig { eps: 1e-15, ..AdamConfig::with_lr(lm) };
         let h = self.host.clone();
-        adam_host(&h, &cfg, &mut self.model.enc_params, g.d_enc, &mut self.adam_enc, lm)?;
-        for ((p, d), s) in self.model.dec_params.iter_mut().zip(g.d_dec).zip(&mut self.adam_dec) {
+        adam_host(&h, &cfg, &mut self.model.enc_params, std::mem::take(&mut g.d_enc), &mut self.adam_enc, lm)?;
+        for ((p, d), s) in self.model.dec_params.iter_mut().zip(std::mem::take(&mut g.d_dec)).zip(&mut self.adam_dec) {
             adam_host(&h, &cfg, p, d, s, lm)?;
         }
         // Per-entry learning rate for the axes: Adam's moments do not depend on the rate, so
         // scaling the axes' update is a step at `ll · axis_lr_factor`.
         let before = self.model.light.clone();
-        adam_host(&h, &cfg, &mut self.model.light, g.d_light, &mut self.adam_light, ll)?;
+        adam_host(&h, &cfg, &mut self.model.light, std::mem::take(&mut g.d_light), &mut self.adam_light, ll)?;
         let fa = self.cfg().axis_lr_factor;
         for (p, b) in self.model.light.chunks_exact_mut(LIGHT_STRIDE).zip(before.chunks_exact(LIGHT_STRIDE)) {
             for a in 0..3 {
@@ -1569,13 +1593,24 @@ impl Stage2Trainer {
             }
         }
         if matches!(self.cfg().indirect, IndirectMode::Ours | IndirectMode::Mii) {
-            adam_host(&h, &cfg, &mut self.model.ind_params, g.d_ind, &mut self.adam_ind, li)?;
+            adam_host(&h, &cfg, &mut self.model.ind_params, std::mem::take(&mut g.d_ind), &mut self.adam_ind, li)?;
+        }
+        if let (Some(m), false) = (geometry, g.d_sdf.is_empty()) {
+            let lg = self.cfg().lr_geometry * f;
+            let state = self.adam_sdf.get_or_insert_with(|| AdamState::new(&h, m.sdf_params.len()));
+            adam_host(&h, &cfg, &mut m.sdf_params, g.d_sdf, state, lg)?;
         }
         Ok((true, norm2.sqrt()))
     }
 
     /// One iteration on `batch` points drawn from the cache (seeded by `(seed, step)`).
     pub fn train_step(&mut self, backend: &Backend, cache: &SurfaceCache) -> Result<Stage2Stats, BackendError> {
+        self.train_step_with(backend, cache, None)
+    }
+
+    /// [`Stage2Trainer::train_step`]; with `geometry` (and `refine_geometry` set) the SDF is
+    /// refined too ([`loss_and_grad_geometry`]).
+    pub fn train_step_with(&mut self, backend: &Backend, cache: &SurfaceCache, geometry: Option<&mut Stage1Model>) -> Result<Stage2Stats, BackendError> {
         if cache.is_empty() {
             return Err(BackendError::Config("stage 2: no cached surface points (the stage-1 surface is hit by no masked pixel)".into()));
         }
@@ -1583,15 +1618,35 @@ impl Stage2Trainer {
         let idx: Vec<usize> = (0..self.cfg().batch).map(|_| rng.random_range(0..cache.len())).collect();
         let batch = cache.batch(&idx, self.cfg().lobes);
         let noise_seed = rng.random::<u64>();
-        let g = loss_and_grad(backend, &self.model, &batch, &self.weights(), noise_seed)?;
+        let refine = self.cfg().refine_geometry;
+        let (g, geometry) = match geometry {
+            Some(m) if refine => (loss_and_grad_geometry(backend, &self.model, &batch, &self.weights(), noise_seed, m)?, Some(m)),
+            _ => (loss_and_grad(backend, &self.model, &batch, &self.weights(), noise_seed)?, None),
+        };
         let stats = g.stats.clone();
-        let (applied, norm) = self.apply(g)?;
+        let (applied, norm) = self.apply_with(g, geometry)?;
         self.step += 1;
         Ok(Stage2Stats { step: self.step, applied, grad_norm: norm, ..stats })
     }
 
+    /// Load the refined SDF of this run (if any) into the stage-1 model it was refined from.
+    pub fn geometry_into(&self, sdf: &mut Stage1Model) -> Result<(), BackendError> {
+        if let Some(p) = &self.refined_sdf {
+            if p.len() != sdf.sdf_params.len() {
+                return Err(BackendError::Shape(format!("the refined SDF has {} values; the stage-1 model needs {}", p.len(), sdf.sdf_params.len())));
+            }
+            sdf.sdf_params.clone_from(p);
+        }
+        Ok(())
+    }
+
     /// Save params + Adam state + config + step + the cache's traced axes into `dir`.
     pub fn save(&self, dir: &Path, scene_key: &str, traced_axes: &[[f32; 3]]) -> Result<(), DataError> {
+        self.save_with(dir, scene_key, traced_axes, None)
+    }
+
+    /// [`Stage2Trainer::save`] with the refined SDF (`--refine-geometry`) and its Adam state.
+    pub fn save_with(&self, dir: &Path, scene_key: &str, traced_axes: &[[f32; 3]], geometry: Option<&Stage1Model>) -> Result<(), DataError> {
         let mut st = ParamStore::new();
         let err = |e: BackendError| DataError::new(dir, e.to_string());
         let m = &self.model;
@@ -1607,6 +1662,12 @@ impl Stage2Trainer {
         st.put_adam_state(&self.host, "encoder", &self.adam_enc).map_err(err)?;
         st.put_adam_state(&self.host, "light", &self.adam_light).map_err(err)?;
         st.put_adam_state(&self.host, "indirect", &self.adam_ind).map_err(err)?;
+        if let Some(g) = geometry.filter(|_| m.cfg.refine_geometry) {
+            st.insert("sdf", &[g.sdf_params.len()], g.sdf_params.clone()).map_err(err)?;
+            if let Some(a) = &self.adam_sdf {
+                st.put_adam_state(&self.host, "sdf", a).map_err(err)?;
+            }
+        }
         st.set_config(&m.cfg).map_err(|e| DataError::new(dir, e.to_string()))?;
         st.set_step(self.step);
         st.metadata.insert("scene".into(), scene_key.to_string());
@@ -1658,6 +1719,15 @@ impl Stage2Trainer {
         }
         if let Some(s) = st.adam_state(&host, "indirect").map_err(e)? {
             t.adam_ind = s;
+        }
+        if cfg.refine_geometry {
+            if let Some(d) = st.data("sdf") {
+                if d.iter().any(|v| !v.is_finite()) {
+                    return Err(DataError::new(&path, "tensor \"sdf\" holds NaN/Inf values"));
+                }
+                t.refined_sdf = Some(d.to_vec());
+                t.adam_sdf = st.adam_state(&host, "sdf").map_err(e)?;
+            }
         }
         t.step = st.step().unwrap_or(0);
         t.skipped = st.metadata.get("skipped").and_then(|s| s.parse().ok()).unwrap_or(0);
