@@ -394,3 +394,68 @@ fn refined_geometry_gradient_matches_central_differences() {
         }
     }
 }
+
+/// The paper preset's network at its geometric initialisation: close to the sphere r = 0.5.
+fn sphere_sdf() -> pii_bake::train::stage1::Model {
+    use pii_bake::train::stage1::{InitMode, Stage1Config};
+    let mut cfg = Stage1Config::for_scene(Preset::Paper, pii_bake::render::TraceMode::Classic, InitMode::Sphere, &[], 0, 1);
+    cfg.field.init_radius = 0.5;
+    cfg.field.feature_dim = 0;
+    cfg.radiance_widths = vec![8];
+    pii_bake::train::stage1::Model::new(&cfg).unwrap()
+}
+
+#[test]
+fn rays_leaving_near_the_tangent_plane_are_not_blocked_by_their_own_surface() {
+    use pii_bake::train::stage2::{blocks, SurfaceCache};
+    let b = Backend::cpu();
+    let sdf = sphere_sdf();
+    let mut cfg = tiny(IndirectMode::Ours, DecoderMode::Separate);
+    cfg.lobes = 1;
+    let c = cfg.secondary_offset;
+    assert!(!blocks(true, c, &cfg) && blocks(true, c + 0.1, &cfg) && !blocks(false, 0.5, &cfg));
+    // Points on the sphere r = 0.5 with a lobe 1.5° above their tangent plane: the start point is
+    // within the hit threshold of their own surface, which must not count as an occluder. A point
+    // outside the sphere looking at it is blocked.
+    let mut cache = SurfaceCache::default();
+    // (Points 0..8 on the ring; point 8 outside the sphere.)
+    let a = 1.5f32.to_radians();
+    for k in 0..8 {
+        let phi = k as f32 * 0.7;
+        let n = [phi.cos() * 0.6, phi.sin() * 0.6, -0.8f32];
+        let n = norm(n);
+        // On the field's zero level along n (bisection), as the primary tracer leaves points.
+        let (mut lo, mut hi) = (0.3f32, 0.7f32);
+        for _ in 0..40 {
+            let m = 0.5 * (lo + hi);
+            if sdf.sdf(&b, &n.map(|v| m * v)).unwrap()[0] < 0.0 {
+                lo = m;
+            } else {
+                hi = m;
+            }
+        }
+        cache.x.push(n.map(|v| lo * v));
+        cache.n.push(n);
+        cache.v.push(n);
+        cache.target.push([0.5; 3]);
+    }
+    cache.x.push([0.0, 0.0, 0.9]);
+    cache.n.push(norm([0.0, -1.0, -1.0]));
+    cache.v.push([0.0, 0.0, 1.0]);
+    cache.target.push([0.5; 3]);
+    // Each ring point traces its own lobe: a tangent direction tilted 1.5° off the surface.
+    for i in 0..8 {
+        let n = cache.n[i];
+        let t = norm([-n[1], n[0], 0.0]);
+        let axis = norm([0, 1, 2].map(|q| t[q] * a.cos() + n[q] * a.sin()));
+        let mut one = SurfaceCache { x: vec![cache.x[i]], n: vec![n], v: vec![n], target: vec![[0.5; 3]], ..Default::default() };
+        one.trace_lobe(&b, &sdf, &cfg, 0, axis).unwrap();
+        let pts: Vec<f32> = [0.0f32, 0.01, 0.02, 0.05, 0.1, 0.2, 0.4, 0.8].iter().flat_map(|t| [0, 1, 2].map(|q| cache.x[i][q] + t * axis[q])).collect();
+        eprintln!("point {i}: f {:?} hits {:?}", sdf.sdf(&b, &pts).unwrap(), one.lobe_hits[0]);
+        assert_eq!(one.lobe_traced[0], 1);
+        assert!(one.lobe_hits[0].is_empty(), "point {i}: its own surface blocked a lobe 1.5° above the tangent plane");
+    }
+    let mut outside = SurfaceCache { x: vec![cache.x[8]], n: vec![cache.n[8]], v: vec![cache.v[8]], target: vec![[0.5; 3]], ..Default::default() };
+    outside.trace_lobe(&b, &sdf, &cfg, 0, [0.0, 0.0, -1.0]).unwrap();
+    assert_eq!(outside.lobe_hits[0].len(), 1, "the sphere blocks the outside point's lobe");
+}
