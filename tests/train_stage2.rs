@@ -459,3 +459,23 @@ fn rays_leaving_near_the_tangent_plane_are_not_blocked_by_their_own_surface() {
     outside.trace_lobe(&b, &sdf, &cfg, 0, [0.0, 0.0, -1.0]).unwrap();
     assert_eq!(outside.lobe_hits[0].len(), 1, "the sphere blocks the outside point's lobe");
 }
+
+#[test]
+fn wgpu_matches_cpu_on_the_refined_geometry_gradient() {
+    let gpu = Backend::wgpu_for_tests().unwrap_or_else(|e| panic!("the test command installs lavapipe: {e}"));
+    let cpu = Backend::cpu();
+    let sdf = tiny_sdf();
+    let mut cfg = tiny(IndirectMode::Ours, DecoderMode::Separate);
+    cfg.refine_geometry = true;
+    cfg.geometry_eikonal_points = 8;
+    let model = Stage2Model::new(&cfg).unwrap();
+    let mut bb = boundary_batch(&model);
+    bb.hit_sdf = bb.hits.iter().map(|h| h.iter().map(|&(_, x2, _)| sdf.sdf(&cpu, &x2).unwrap()[0]).collect()).collect();
+    let w = weights();
+    let (a, c) = (loss_and_grad_geometry(&cpu, &model, &bb, &w, 7, &sdf).unwrap(), loss_and_grad_geometry(&gpu, &model, &bb, &w, 7, &sdf).unwrap());
+    assert!((a.stats.loss - c.stats.loss).abs() < 1e-5 * (1.0 + a.stats.loss.abs()), "{} vs {}", a.stats.loss, c.stats.loss);
+    let scale = a.d_sdf.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-6);
+    for (i, (p, q)) in a.d_sdf.iter().zip(&c.d_sdf).enumerate() {
+        assert!((p - q).abs() <= 2e-3 * scale + 1e-6, "d_sdf[{i}]: cpu {p} vs wgpu {q}");
+    }
+}
