@@ -380,6 +380,11 @@ fn secant(tl: f32, fl: f32, th: f32, fh: f32) -> f32 {
 /// Secondary rays: sphere tracing from `t = start_offset` for exactly `steps` steps (the
 /// paper's 10 from 0.01 toward each light lobe). A ray hits when |f| < `threshold` before it
 /// leaves the sphere of radius `bound`. Returns `(hit, t)` per ray.
+///
+/// A ray whose start point is already within the threshold is not a hit: it is its origin's own
+/// surface seen by a ray leaving within ~`threshold/start_offset` rad of the tangent plane
+/// (`f ≈ start_offset·sin α`), not an occluder. Measured in stage 2 on the example and bowl, such
+/// first-step self-hits were ~37% and ~54% of all hits.
 pub fn trace_secondary(
     f: &dyn SdfBatch,
     rays: &Rays,
@@ -395,7 +400,7 @@ pub fn trace_secondary(
         .filter_map(|i| sphere_interval(rays.origins[i], rays.dirs[i], bound).map(|(_, t1)| (i, start_offset, t1)))
         .collect();
     let mut evals = 0;
-    for _ in 0..steps {
+    for step in 0..steps {
         if active.is_empty() {
             break;
         }
@@ -408,6 +413,9 @@ pub fn trace_secondary(
                 continue;
             }
             if fv < threshold {
+                if step == 0 {
+                    continue; // the origin's own surface (see above)
+                }
                 hit[i] = true;
                 t_out[i] = t;
                 continue;
@@ -545,6 +553,12 @@ mod tests {
         let (hit, t) = trace_secondary(&f, &rays, 0.01, 10, 1e-3, 1.0).unwrap();
         assert!(hit[0] && !hit[1]);
         assert!((t[0] - 0.3).abs() < 2e-3, "t {}", t[0]);
+        // From the sphere's own surface, 1° above its tangent plane: the start point is within the
+        // threshold of the origin's surface, which is not an occluder.
+        let a = 1f32.to_radians();
+        let grazing = Rays { origins: vec![[0.0, 0.3, 0.0]], dirs: vec![[a.cos(), a.sin(), 0.0]] };
+        let (hit, _) = trace_secondary(&f, &grazing, 0.01, 10, 1e-3, 1.0).unwrap();
+        assert!(!hit[0]);
         let (tm, pm) = min_sdf_along(&f, &rays, &[0.0, 0.0], &[1.2, 0.8], 61, 0.0).unwrap();
         assert!((tm[0] - 0.6).abs() < 0.03, "{tm:?}");
         assert!(pm[1][0] < 0.02, "sideways ray's min is at its start: {pm:?}");

@@ -445,7 +445,7 @@ fn relight_points(backend: &Backend, sdf: &Stage1Model, model: &Stage2Model, c: 
         let f = |p: &[f32]| sdf.sdf(backend, p);
         let (hit, t) = trace_secondary(&f, &rays, cfg.secondary_offset, cfg.secondary_steps, cfg.secondary_threshold, 1.0)?;
         for (q, &i) in idx.iter().enumerate() {
-            if super::stage2::blocks(hit[q], t[q], cfg) {
+            if hit[q] {
                 hx.push(rays.at(q, t[q]));
                 owner.push((i, j));
             }

@@ -1301,15 +1301,6 @@ pub struct SurfaceCache {
     pub retraced: usize,
 }
 
-/// Whether a secondary ray's hit blocks its lobe. A hit at the ray's first step (the start point,
-/// `secondary_offset` along the ray, is already within the hit threshold) is the point's own
-/// surface seen by a ray leaving it within ~3° of its tangent plane (`f ≈ offset·sin α <
-/// threshold`), not an occluder: measured on the example and bowl, such self-hits were ~37% and
-/// ~54% of all hits, and every one of them looked like a boundary light.
-pub fn blocks(hit: bool, t: f32, cfg: &Stage2Config) -> bool {
-    hit && t > cfg.secondary_offset
-}
-
 /// Unit normals at points: central differences of the stage-1 field with step `step` (the
 /// field's own gradient step times the config's `normal_step_factor`).
 pub fn normals_at(backend: &Backend, sdf: &Stage1Model, x: &[[f32; 3]], step: f32) -> Result<Vec<[f32; 3]>, BackendError> {
@@ -1398,7 +1389,7 @@ impl SurfaceCache {
             let (hit, t) = trace_secondary(&f, &r, cfg.secondary_offset, cfg.secondary_steps, cfg.secondary_threshold, 1.0)?;
             self.evaluations += r.len() * cfg.secondary_steps;
             for j in 0..r.len() {
-                if blocks(hit[j], t[j], cfg) {
+                if hit[j] {
                     hits.push(idx[start + j]);
                     hit_pts.push(r.at(j, t[j]));
                 }
