@@ -797,16 +797,7 @@ pub fn loss_and_grad(
         }
         // Eikonal at surface and uniform points.
         let eik_idx: Vec<usize> = (0..if ls.surface_eikonal { ns } else { 0 }).chain(ns + nm..n).collect();
-        let inv_e = 1.0 / eik_idx.len().max(1) as f64;
-        for &i in &eik_idx {
-            let gr = &o.gradient[3 * i..3 * i + 3];
-            let len = ((gr[0] * gr[0] + gr[1] * gr[1] + gr[2] * gr[2]) as f64).sqrt();
-            parts.1 += ls.eikonal_weight as f64 * (len - 1.0).powi(2) * inv_e;
-            let c = (ls.eikonal_weight as f64 * 2.0 * (len - 1.0) / len.max(1e-12) * inv_e) as f32;
-            for a in 0..3 {
-                g.gradient[3 * i + a] += c * gr[a];
-            }
-        }
+        parts.1 += eikonal(&o.gradient, &eik_idx, ls.eikonal_weight, &mut g.gradient);
         // Normal smoothness between each surface point and its jittered point.
         if ls.smoothness_weight > 0.0 && ls.near_surface_sigma > 0.0 && ns > 0 {
             let pairs: Vec<(usize, usize)> = (0..ns).map(|k| (k, n - ns + k)).collect();
@@ -831,6 +822,23 @@ pub fn loss_and_grad(
         ..Default::default()
     };
     Ok(StepGrad { stats, d_sdf, d_radiance })
+}
+
+/// The eikonal term `weight · mean over points i of (|g_i| − 1)²` over field gradients
+/// (`gradients`: 3 per point); adds its derivative to `d_gradients` and returns the value.
+pub fn eikonal(gradients: &[f32], idx: &[usize], weight: f32, d_gradients: &mut [f32]) -> f64 {
+    let inv_e = 1.0 / idx.len().max(1) as f64;
+    let mut loss = 0.0;
+    for &i in idx {
+        let gr = &gradients[3 * i..3 * i + 3];
+        let len = ((gr[0] * gr[0] + gr[1] * gr[1] + gr[2] * gr[2]) as f64).sqrt();
+        loss += weight as f64 * (len - 1.0).powi(2) * inv_e;
+        let c = (weight as f64 * 2.0 * (len - 1.0) / len.max(1e-12) * inv_e) as f32;
+        for a in 0..3 {
+            d_gradients[3 * i + a] += c * gr[a];
+        }
+    }
+    loss
 }
 
 /// Normal smoothness `weight · mean over pairs (a, b) of |g_a − g_b|²` over field gradients

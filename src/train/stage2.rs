@@ -1862,7 +1862,7 @@ pub fn loss_and_grad_geometry(backend: &Backend, model: &Stage2Model, batch: &St
         pts.push(rng.random_range(-bound..bound));
     }
     let nh = owner.len();
-    let we = model.cfg.geometry_eikonal_weight as f64;
+    let we = model.cfg.geometry_eikonal_weight;
     let (eik, d_sdf) = field.value_and_grad(backend, &sdf.sdf_params, &pts, |o| {
         let n = b + nh + ne;
         let mut g = crate::nn::field::FieldOutputGrads { sdf: vec![0.0; n], gradient: vec![0.0; 3 * n], feature: Vec::new() };
@@ -1888,17 +1888,7 @@ pub fn loss_and_grad_geometry(backend: &Backend, model: &Stage2Model, batch: &St
             g.sdf[b + k] += (out.d_offset[k] / hit_t[k]) as f32;
         }
         let eik_idx: Vec<usize> = (0..b).chain(b + nh..n).collect();
-        let inv_e = 1.0 / eik_idx.len().max(1) as f64;
-        let mut loss = 0.0;
-        for &i in &eik_idx {
-            let gr = [0, 1, 2].map(|a| o.gradient[3 * i + a] as f64);
-            let len = dot3(gr, gr).sqrt();
-            loss += we * (len - 1.0).powi(2) * inv_e;
-            let c = we * 2.0 * (len - 1.0) / len.max(1e-12) * inv_e;
-            for a in 0..3 {
-                g.gradient[3 * i + a] += (c * gr[a]) as f32;
-            }
-        }
+        let loss = super::stage1::eikonal(&o.gradient, &eik_idx, we, &mut g.gradient);
         (loss, g)
     })?;
     out.stats.eikonal = eik;
