@@ -158,3 +158,41 @@ mod tests {
         assert_eq!(read_bounded(&p, 100).unwrap().len(), 100);
     }
 }
+
+/// Keep freed heap memory in the process instead of returning it to the kernel.
+///
+/// Training allocates and frees tens of MB every step (a hash grid's dense parameter gradient is
+/// `levels · 2^log2_table · F` values). glibc serves blocks that large with a fresh `mmap` and
+/// unmaps them on `free`, so every step page-faults each page again (the scatter reads a page
+/// before writing it: two faults and a cross-core TLB flush per page). Raising the mmap and trim
+/// thresholds lets the heap reuse the blocks; peak memory is unchanged. Measured on the 2-core
+/// CPU box, stage 1 on the Ethiopian head (2^19 tables): 2.5 -> 4.2 it/s, identical results.
+/// Returns whether both settings were accepted (always false off glibc, where it does nothing).
+pub fn keep_freed_memory() -> bool {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        // SAFETY: mallopt only changes allocator parameters; called before heavy allocation.
+        unsafe {
+            // The largest threshold glibc accepts is half its maximum heap size (32 MiB on 64-bit);
+            // M_MMAP_MAX = 0 then keeps every block on the heap, whatever its size.
+            let a = libc::mallopt(libc::M_MMAP_MAX, 0);
+            let b = libc::mallopt(libc::M_TRIM_THRESHOLD, i32::MAX);
+            a == 1 && b == 1
+        }
+    }
+    #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+    {
+        false
+    }
+}
+
+#[cfg(all(test, target_os = "linux", target_env = "gnu"))]
+mod alloc_tests {
+    #[test]
+    fn glibc_accepts_the_allocator_settings() {
+        assert!(super::keep_freed_memory());
+        // Large blocks still allocate, zeroed, and free.
+        let v = vec![0f32; 50 << 20];
+        assert!(v.iter().step_by(4096).all(|&x| x == 0.0));
+    }
+}

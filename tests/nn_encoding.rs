@@ -353,3 +353,24 @@ fn bad_configurations_and_shapes_are_errors() {
     let err = b.encoding_backward(&cfg, &p, &x, 2, &d, true).unwrap_err();
     assert!(err.to_string().contains("d_out"), "{err}");
 }
+
+/// The cpu hash grid runs level-major over large parallel chunks: a batch spanning several chunks
+/// (and a ragged last one) gives, row for row, exactly what each point gives alone.
+#[test]
+fn hash_grid_batches_equal_single_points() {
+    let cfg = small_grid();
+    let params = to_f32(&uniform(cfg.num_params(), -1.0, 1.0, 11));
+    let n = 20_011;
+    let x = to_f32(&uniform(3 * n, -1.6, 1.6, 12));
+    let d_out = to_f32(&uniform(n * cfg.out_dim(3), -1.0, 1.0, 13));
+    let out = encoding_forward_cpu(&cfg, &params, &x, 3);
+    let (_, dx) = encoding_backward_cpu(&cfg, &params, &x, 3, &d_out, true);
+    let dx = dx.expect("dx asked for");
+    let od = cfg.out_dim(3);
+    for i in (0..n).step_by(97).chain([n - 1]) {
+        let xi = &x[3 * i..3 * i + 3];
+        assert_eq!(&encoding_forward_cpu(&cfg, &params, xi, 3)[..], &out[i * od..(i + 1) * od], "row {i}");
+        let (_, dxi) = encoding_backward_cpu(&cfg, &params, xi, 3, &d_out[i * od..(i + 1) * od], true);
+        assert_eq!(&dxi.unwrap()[..], &dx[3 * i..3 * i + 3], "row {i}");
+    }
+}

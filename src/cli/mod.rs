@@ -106,6 +106,7 @@ pub fn main() -> ExitCode {
         }
     };
     init_logging(&cli.global);
+    crate::util::keep_freed_memory();
     // Mesa's Vulkan drivers print "error: XDG_RUNTIME_DIR is invalid or not set" to stderr while
     // wgpu probes adapters on a headless machine; the variable only locates display sockets,
     // which we never open. Give this process a harmless value rather than alarm the user.

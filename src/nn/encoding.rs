@@ -481,6 +481,12 @@ fn point<T: Real>(x: &[T]) -> [T; 3] {
     [x[0], x[1], x[2]]
 }
 
+/// Rows per parallel chunk of the hash-grid twins: large, so that a level's table is read by
+/// many points in turn, yet at least two chunks per thread; a chunk's outputs stay in L2.
+fn grid_chunk_rows(n: usize) -> usize {
+    n.div_ceil(2 * rayon::current_num_threads()).clamp(CHUNK_ROWS, 4096)
+}
+
 /// Hash grid forward on the cpu: `x` `[n, 3]` → `[n, levels·F]`. `cfg` must be a validated hash grid.
 pub fn hash_grid_forward_cpu<T: Real>(cfg: &EncodingConfig, params: &[T], x: &[T]) -> Vec<T> {
     let Some(g) = grid_geom(cfg) else {
@@ -490,11 +496,15 @@ pub fn hash_grid_forward_cpu<T: Real>(cfg: &EncodingConfig, params: &[T], x: &[T
     let n = x.len() / 3;
     let (bound, inv_2b) = (T::from_f64(g.bound), T::from_f64(0.5 / g.bound));
     let mut out = vec![T::default(); n * od];
-    out.par_chunks_mut(CHUNK_ROWS * od)
-        .zip(x.par_chunks(CHUNK_ROWS * 3))
+    // Level-major inside each chunk: one level's table (a few MB at 2^19 entries) stays in the
+    // last-level cache while the chunk's points read it, where point-major order walks all the
+    // levels' tables (tens of MB) per point. Each output sums its corners in the same order.
+    let rows = grid_chunk_rows(n);
+    out.par_chunks_mut(rows * od)
+        .zip(x.par_chunks(rows * 3))
         .for_each(|(o, xs)| {
-            for (orow, xrow) in o.chunks_exact_mut(od).zip(xs.chunks_exact(3)) {
-                for (l, lvl) in g.levels.iter().enumerate() {
+            for (l, lvl) in g.levels.iter().enumerate() {
+                for (orow, xrow) in o.chunks_exact_mut(od).zip(xs.chunks_exact(3)) {
                     let cell = locate(point(xrow), bound, inv_2b, lvl.resolution);
                     let acc = &mut orow[l * g.f..(l + 1) * g.f];
                     for (idx, w, _) in corners(lvl, &cell, g.table_mask) {
@@ -558,16 +568,18 @@ pub fn hash_grid_backward_x_cpu<T: Real>(
     let od = g.levels.len() * g.f;
     let (bound, inv_2b) = (T::from_f64(g.bound), T::from_f64(0.5 / g.bound));
     let mut dx = vec![T::default(); x.len()];
-    dx.par_chunks_mut(CHUNK_ROWS * 3)
-        .zip(x.par_chunks(CHUNK_ROWS * 3))
-        .zip(d_out.par_chunks(CHUNK_ROWS * od))
+    // Level-major inside each chunk, as the forward; each row still adds its levels in order.
+    let rows = grid_chunk_rows(x.len() / 3);
+    dx.par_chunks_mut(rows * 3)
+        .zip(x.par_chunks(rows * 3))
+        .zip(d_out.par_chunks(rows * od))
         .for_each(|((dxs, xs), dos)| {
-            for ((dxrow, xrow), dorow) in dxs
-                .chunks_exact_mut(3)
-                .zip(xs.chunks_exact(3))
-                .zip(dos.chunks_exact(od))
-            {
-                for (l, lvl) in g.levels.iter().enumerate() {
+            for (l, lvl) in g.levels.iter().enumerate() {
+                for ((dxrow, xrow), dorow) in dxs
+                    .chunks_exact_mut(3)
+                    .zip(xs.chunks_exact(3))
+                    .zip(dos.chunks_exact(od))
+                {
                     let cell = locate(point(xrow), bound, inv_2b, lvl.resolution);
                     let dpos = T::from_f64(lvl.resolution as f64) * inv_2b;
                     let dol = &dorow[l * g.f..(l + 1) * g.f];
