@@ -63,6 +63,16 @@ fn stage_two_resumes_exactly_exports_and_relights() {
     assert_eq!(report["config"]["decoder"], "separate", "a transforms.json scene is synthetic");
     assert!(report["cache"]["points"].as_u64().unwrap() > 100);
     assert!(report["eval"]["psnr"].as_f64().unwrap().is_finite());
+    // The fast preset's material grid: half stage 1's finest resolution, stage 1's table, and the
+    // grid's latent smoothness.
+    let run: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("run.json")).unwrap()).unwrap();
+    let sizes = &run["config"]["sizes"];
+    let grid = &report["config"]["material_encoding"]["HashGrid"];
+    let finest = grid["base_resolution"].as_f64().unwrap() * grid["growth"].as_f64().unwrap().powi(grid["levels"].as_i64().unwrap() as i32 - 1);
+    let want = (sizes["grid_finest"].as_f64().unwrap() / 2.0).floor().max(32.0);
+    assert!((finest - want).abs() < 0.5, "material grid finest {finest}, want {want}: {grid}");
+    assert_eq!(grid["log2_table_size"], sizes["grid_log2_table"]);
+    assert_eq!(report["config"]["smooth_weight"].as_f64().unwrap(), 1.0);
 
     // Export: learned textures and the learned environment.
     let asset = dir.path().join("asset");
