@@ -1793,24 +1793,9 @@ pub fn loss_and_grad_geometry(backend: &Backend, model: &Stage2Model, batch: &St
     const RAY_EPS: f64 = 5e-4;
     let b = batch.len();
     let field = &sdf.field;
-    let o = field.eval_with_gradient(backend, &sdf.sdf_params, bytemuck::cast_slice(&batch.x))?;
-    // The moved points and the normals.
-    let mut gb = batch.clone();
-    let mut moves = Vec::with_capacity(b); // (s, g·r, |g|, sign) per point
-    for i in 0..b {
-        let g = [0, 1, 2].map(|a| o.gradient[3 * i + a] as f64);
-        let v = f64x3(batch.v[i]);
-        let r = v.map(|c| -c);
-        let gr = dot3(g, r);
-        let f = o.sdf[i] as f64;
-        let s = if gr < -0.05 { -f / gr } else { 0.0 };
-        let len = dot3(g, g).sqrt().max(1e-12);
-        let sign = if dot3(g, v) < 0.0 { -1.0 } else { 1.0 };
-        gb.x[i] = [0, 1, 2].map(|a| (batch.x[i][a] as f64 + r[a] * s) as f32);
-        gb.n[i] = g.map(|c| (sign * c / len) as f32);
-        moves.push((s, gr, len, sign));
-    }
-    // Boundary offsets: how far each hit's occluder has receded from its ray since the trace.
+    // Secondary hits (their SDF gives each boundary light's offset) and uniform eikonal points
+    // (drawn from the step's seed) join the surface points in one field evaluation, whose
+    // outputs feed the whole step: the SDF is evaluated once per point.
     let mut owner = Vec::new();
     let mut hit_pts: Vec<f32> = Vec::new();
     let mut f0 = Vec::new();
@@ -1823,7 +1808,6 @@ pub fn loss_and_grad_geometry(backend: &Backend, model: &Stage2Model, batch: &St
             }
         }
     }
-    let hit_f = if hit_pts.is_empty() { Vec::new() } else { sdf.sdf(backend, &hit_pts)? };
     let hit_t: Vec<f64> = owner
         .iter()
         .enumerate()
@@ -1832,27 +1816,6 @@ pub fn loss_and_grad_geometry(backend: &Backend, model: &Stage2Model, batch: &St
             dot3(d, d).sqrt().max(1e-3)
         })
         .collect();
-    gb.boundary_offset = (0..owner.len()).map(|s| (hit_f[s] as f64 - f0[s]) / hit_t[s]).collect();
-
-    let mut out = loss_and_grad_with(backend, model, &gb, w, noise_seed, true)?;
-    // The colour term's derivative along each ray.
-    let inv3b = 1.0 / (3.0 * b as f64);
-    let rgb_loss = |x: &Stage2Batch| -> Result<Vec<f64>, BackendError> {
-        let c = render_points_f64(backend, model, x)?;
-        Ok(c.iter().zip(&x.target).map(|(c, t)| (0..3).map(|k| (srgb_with_derivative(c[k]).0 - t[k] as f64).abs() * inv3b).sum()).collect())
-    };
-    let shifted = |sign: f64| {
-        let mut x = gb.clone();
-        for i in 0..b {
-            let v = f64x3(batch.v[i]);
-            x.x[i] = [0, 1, 2].map(|a| (gb.x[i][a] as f64 - sign * RAY_EPS * v[a]) as f32);
-        }
-        x
-    };
-    let (lp, lm) = (rgb_loss(&shifted(1.0))?, rgb_loss(&shifted(-1.0))?);
-    let ds: Vec<f64> = lp.iter().zip(&lm).map(|(p, m)| (p - m) / (2.0 * RAY_EPS)).collect();
-
-    // Uniform eikonal points (drawn from the step's seed).
     let mut rng = crate::util::rng(noise_seed ^ 0xE1C0);
     let bound = 1.0f32;
     let ne = model.cfg.geometry_eikonal_points;
@@ -1863,9 +1826,55 @@ pub fn loss_and_grad_geometry(backend: &Backend, model: &Stage2Model, batch: &St
     }
     let nh = owner.len();
     let we = model.cfg.geometry_eikonal_weight;
+    let mut step: Result<Option<Stage2Grads>, BackendError> = Ok(None);
     let (eik, d_sdf) = field.value_and_grad(backend, &sdf.sdf_params, &pts, |o| {
         let n = b + nh + ne;
         let mut g = crate::nn::field::FieldOutputGrads { sdf: vec![0.0; n], gradient: vec![0.0; 3 * n], feature: Vec::new() };
+        // The moved points and the normals.
+        let mut gb = batch.clone();
+        let mut moves = Vec::with_capacity(b); // (s, g·r, |g|, sign) per point
+        for i in 0..b {
+            let gv = [0, 1, 2].map(|a| o.gradient[3 * i + a] as f64);
+            let v = f64x3(batch.v[i]);
+            let r = v.map(|c| -c);
+            let gr = dot3(gv, r);
+            let f = o.sdf[i] as f64;
+            let s = if gr < -0.05 { -f / gr } else { 0.0 };
+            let len = dot3(gv, gv).sqrt().max(1e-12);
+            let sign = if dot3(gv, v) < 0.0 { -1.0 } else { 1.0 };
+            gb.x[i] = [0, 1, 2].map(|a| (batch.x[i][a] as f64 + r[a] * s) as f32);
+            gb.n[i] = gv.map(|c| (sign * c / len) as f32);
+            moves.push((s, gr, len, sign));
+        }
+        // Boundary offsets: how far each hit's occluder has receded from its ray since the trace.
+        gb.boundary_offset = (0..nh).map(|s| (o.sdf[b + s] as f64 - f0[s]) / hit_t[s]).collect();
+        let colour = || -> Result<(Stage2Grads, Vec<f64>), BackendError> {
+            let out = loss_and_grad_with(backend, model, &gb, w, noise_seed, true)?;
+            // The colour term's derivative along each ray.
+            let inv3b = 1.0 / (3.0 * b as f64);
+            let rgb_loss = |x: &Stage2Batch| -> Result<Vec<f64>, BackendError> {
+                let c = render_points_f64(backend, model, x)?;
+                Ok(c.iter().zip(&x.target).map(|(c, t)| (0..3).map(|k| (srgb_with_derivative(c[k]).0 - t[k] as f64).abs() * inv3b).sum()).collect())
+            };
+            let shifted = |sign: f64| {
+                let mut x = gb.clone();
+                for i in 0..b {
+                    let v = f64x3(batch.v[i]);
+                    x.x[i] = [0, 1, 2].map(|a| (gb.x[i][a] as f64 - sign * RAY_EPS * v[a]) as f32);
+                }
+                x
+            };
+            let (lp, lm) = (rgb_loss(&shifted(1.0))?, rgb_loss(&shifted(-1.0))?);
+            let ds: Vec<f64> = lp.iter().zip(&lm).map(|(p, m)| (p - m) / (2.0 * RAY_EPS)).collect();
+            Ok((out, ds))
+        };
+        let (out, ds) = match colour() {
+            Ok(v) => v,
+            Err(e) => {
+                step = Err(e);
+                return (0.0, g);
+            }
+        };
         for i in 0..b {
             let (s, gr, len, sign) = moves[i];
             let gv = [0, 1, 2].map(|a| o.gradient[3 * i + a] as f64);
@@ -1889,8 +1898,10 @@ pub fn loss_and_grad_geometry(backend: &Backend, model: &Stage2Model, batch: &St
         }
         let eik_idx: Vec<usize> = (0..b).chain(b + nh..n).collect();
         let loss = super::stage1::eikonal(&o.gradient, &eik_idx, we, &mut g.gradient);
+        step = Ok(Some(out));
         (loss, g)
     })?;
+    let mut out = step?.expect("the field's loss closure ran");
     out.stats.eikonal = eik;
     out.stats.loss += eik;
     out.d_sdf = d_sdf;
