@@ -164,9 +164,10 @@ mod tests {
 /// Training allocates and frees tens of MB every step (a hash grid's dense parameter gradient is
 /// `levels · 2^log2_table · F` values). glibc serves blocks that large with a fresh `mmap` and
 /// unmaps them on `free`, so every step page-faults each page again (the scatter reads a page
-/// before writing it: two faults and a cross-core TLB flush per page). Raising the mmap and trim
-/// thresholds lets the heap reuse the blocks; peak memory is unchanged. Measured on the 2-core
-/// CPU box, stage 1 on the Ethiopian head (2^19 tables): 2.5 -> 4.2 it/s, identical results.
+/// before writing it: two faults and a cross-core TLB flush per page). Serving every block from
+/// the heap (no mmap) and never trimming it lets the blocks be reused; peak memory is unchanged.
+/// Measured on the 2-core CPU box, stage 1 on the Ethiopian head (2^19 tables): 2.5 -> 4.0 it/s,
+/// identical results.
 /// Returns whether both settings were accepted (always false off glibc, where it does nothing).
 pub fn keep_freed_memory() -> bool {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
