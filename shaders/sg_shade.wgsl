@@ -23,7 +23,7 @@ struct ShadeParams {
 const WG: u32 = 64u;
 const R_MIN: f32 = 0.02;
 const LAMBDA_MIN: f32 = 1e-4;
-const F0: f32 = 0.02;
+const F0: f32 = 0.04;
 const TINY: f32 = 1e-6;
 const COS_MU: f32 = 32.7080;
 const COS_LAMBDA: f32 = 0.0315;

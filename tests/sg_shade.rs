@@ -148,7 +148,7 @@ fn sg_integral_and_inner_product_match_monte_carlo() {
 }
 
 /// Exact GGX microfacet specular term (α = R², Schlick-GGX masking with k = (R+1)²/8, the
-/// Fresnel of the design with F0 = 0.02) times cos⁺.
+/// Fresnel of the design with F0 = `shade::F0`) times cos⁺.
 fn ggx_cos(n: V, v: V, w: V, r: f64) -> f64 {
     let (nw, nv) = (dot(n, w), dot(n, v));
     if nw <= 0.0 || nv <= 0.0 {
@@ -157,7 +157,7 @@ fn ggx_cos(n: V, v: V, w: V, r: f64) -> f64 {
     let h = norm([w[0] + v[0], w[1] + v[1], w[2] + v[2]]);
     let a = r * r;
     let vh = dot(v, h).max(0.0);
-    let f = 0.02 + 0.98 * 2f64.powf(-(5.55473 * vh + 6.8316) * vh);
+    let f = pii_bake::sg::shade::F0 + (1.0 - pii_bake::sg::shade::F0) * 2f64.powf(-(5.55473 * vh + 6.8316) * vh);
     let k = (r + 1.0) * (r + 1.0) / 8.0;
     let g = |x: f64| x / (x * (1.0 - k) + k);
     ggx_d(dot(n, h), a) * f * g(nw) * g(nv) / (4.0 * nw * nv) * nw

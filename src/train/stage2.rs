@@ -19,7 +19,7 @@
 //!   lobe axis above the horizon, 0 where the environment is visible, and trained by the render
 //!   loss too).
 //!
-//! Shading is [`crate::sg::shade`]'s closed form (F0 = 0.02), output sRGB-encoded and compared
+//! Shading is [`crate::sg::shade`]'s closed form (F0 = 0.04, glTF's dielectric), output sRGB-encoded and compared
 //! with the photo by L1 (as stage 1 and PhySG). Geometry is frozen (the public code): primary
 //! surface points, their normals and every secondary hit are traced **once** into a
 //! [`SurfaceCache`]; a lobe whose axis has moved by more than `retrace_degrees` since it was traced
@@ -218,7 +218,7 @@ impl Stage2Config {
             batch,
             iterations,
             lr_material: 5e-3,
-            lr_light: 1e-2,
+            lr_light: 3e-2,
             axis_lr_factor: 0.1,
             lr_indirect: 2e-3,
             lr_final_factor: 0.1,
