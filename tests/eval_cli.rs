@@ -58,6 +58,7 @@ fn identical_prediction_is_perfect() {
     assert_eq!(relit.len(), 2, "two relighting environments");
     for v in relit.values() {
         assert_eq!(f(&v["psnr"]), 100.0);
+        assert_eq!(f(&v["psnr_aligned"]), 100.0);
     }
     assert_eq!(f(&m["albedo"]["psnr_aligned"]), 100.0);
     assert_eq!(f(&m["roughness"]["mse"]), 0.0);
@@ -94,6 +95,24 @@ fn known_error_on_novel_views_gives_expected_psnr() {
     assert!(f(&m["novel_view"]["ssim"]) < 1.0);
     assert!(m.get("albedo").is_none(), "no albedo prediction, no albedo metric");
     assert!(!m["missing"].as_array().unwrap().is_empty());
+}
+
+#[test]
+fn relit_views_are_also_scored_after_a_per_channel_scale() {
+    // Relit predictions at half the ground truth's linear intensity: the raw PSNR sees it, the
+    // aligned one (one least-squares scale per channel over the views) does not.
+    let pred = tempfile::tempdir().unwrap();
+    let p = pred.path();
+    for name in test_names() {
+        let g = read_image_linear(&example().join(format!("test/{name}_relit_envmap6.png"))).unwrap();
+        let half: Vec<f32> = g.rgb().iter().map(|v| 0.5 * v).collect();
+        write_exr_rgb(&p.join(format!("test/{name}_relit_envmap6.exr")), g.width, g.height, &half).unwrap();
+    }
+    let m = eval(p);
+    let r = &m["relit"]["envmap6"];
+    assert!(f(&r["psnr"]) < 30.0, "{r}");
+    assert!(f(&r["psnr_aligned"]) > 60.0, "{r}");
+    assert!((f(&r["scale"][0]) - 2.0).abs() < 1e-3, "{r}");
 }
 
 #[test]

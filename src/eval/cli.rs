@@ -110,10 +110,23 @@ struct ViewScores {
     psnr: Vec<f64>,
     ssim: Vec<f64>,
     per_view: Vec<Value>,
+    /// Linear RGB of prediction and ground truth with the mask, per view (kept for alignment).
+    images: Vec<(Vec<f32>, Vec<f32>, Option<Vec<f32>>)>,
+}
+
+impl ViewScores {
+    /// One per-channel least-squares scale over all views (as for albedo), and the mean PSNR of the
+    /// scaled predictions: relit images judged up to the light/albedo scale ambiguity, the figure
+    /// NeRFactor-style papers report beside (or instead of) the raw one.
+    fn aligned(&self) -> ([f64; 3], Option<f64>) {
+        let s = ls_scale_rgb(self.images.iter().map(|(p, g, m)| (&p[..], &g[..], m.as_deref())));
+        let ps: Vec<f64> = self.images.iter().map(|(p, g, m)| psnr_srgb(&apply_scale(p, s), g, m.as_deref())).collect();
+        (s, mean(&ps))
+    }
 }
 
 fn score_views(gt: &Path, pred: &Path, names: &[String], suffix: &str, missing: &mut Vec<String>) -> Result<ViewScores, DataError> {
-    let mut s = ViewScores { psnr: vec![], ssim: vec![], per_view: vec![] };
+    let mut s = ViewScores { psnr: vec![], ssim: vec![], per_view: vec![], images: vec![] };
     for name in names {
         let rel = format!("test/{name}{suffix}");
         let gp = gt.join(format!("{rel}.png"));
@@ -133,6 +146,7 @@ fn score_views(gt: &Path, pred: &Path, names: &[String], suffix: &str, missing: 
             s.ssim.push(v);
         }
         s.per_view.push(json!({"name": name, "psnr": ps, "ssim": ss}));
+        s.images.push((prgb, grgb, mask));
     }
     Ok(s)
 }
@@ -159,7 +173,8 @@ pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
         for env in relight_envs(gt, first) {
             let r = score_views(gt, pred, &names, &format!("_relit_{env}"), &mut missing)?;
             if !r.psnr.is_empty() {
-                relit.insert(env, json!({"views": r.psnr.len(), "psnr": mean(&r.psnr), "ssim": mean(&r.ssim), "per_view": r.per_view}));
+                let (scale, aligned) = r.aligned();
+                relit.insert(env, json!({"views": r.psnr.len(), "psnr": mean(&r.psnr), "ssim": mean(&r.ssim), "psnr_aligned": aligned, "scale": scale, "per_view": r.per_view}));
             }
         }
     }
@@ -251,7 +266,7 @@ pub fn run(args: &EvalArgs, ctx: &Context) -> anyhow::Result<()> {
     }
     if let Some(Value::Object(r)) = report.get("relit") {
         for (env, v) in r {
-            ctx.say(format!("relit {env:<8} PSNR {} dB  SSIM {}", f(&v["psnr"]), f(&v["ssim"])));
+            ctx.say(format!("relit {env:<8} PSNR {} dB  SSIM {}  ({} dB after per-channel scale)", f(&v["psnr"]), f(&v["ssim"]), f(&v["psnr_aligned"])));
         }
     }
     if let Some(a) = report.get("albedo") {
