@@ -111,18 +111,17 @@ struct ViewScores {
     ssim: Vec<f64>,
     per_view: Vec<Value>,
     /// Linear RGB of prediction and ground truth with the mask, per view (kept for alignment).
-    images: Vec<(Vec<f32>, Vec<f32>, Option<Vec<f32>>)>,
+    images: Vec<ViewImages>,
 }
 
-impl ViewScores {
-    /// One per-channel least-squares scale over all views (as for albedo), and the mean PSNR of the
-    /// scaled predictions: relit images judged up to the light/albedo scale ambiguity, the figure
-    /// NeRFactor-style papers report beside (or instead of) the raw one.
-    fn aligned(&self) -> ([f64; 3], Option<f64>) {
-        let s = ls_scale_rgb(self.images.iter().map(|(p, g, m)| (&p[..], &g[..], m.as_deref())));
-        let ps: Vec<f64> = self.images.iter().map(|(p, g, m)| psnr_srgb(&apply_scale(p, s), g, m.as_deref())).collect();
-        (s, mean(&ps))
-    }
+/// One view's linear prediction, ground truth and mask.
+type ViewImages = (Vec<f32>, Vec<f32>, Option<Vec<f32>>);
+
+/// One per-channel least-squares scale over all views and each view's PSNR after it: how albedo is
+/// scored, and relit images beside their raw PSNR (judged up to the light/albedo scale ambiguity).
+fn scale_aligned_psnr(views: &[ViewImages]) -> ([f64; 3], Vec<f64>) {
+    let s = ls_scale_rgb(views.iter().map(|(p, g, m)| (&p[..], &g[..], m.as_deref())));
+    (s, views.iter().map(|(p, g, m)| psnr_srgb(&apply_scale(p, s), g, m.as_deref())).collect())
 }
 
 fn score_views(gt: &Path, pred: &Path, names: &[String], suffix: &str, missing: &mut Vec<String>) -> Result<ViewScores, DataError> {
@@ -173,8 +172,8 @@ pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
         for env in relight_envs(gt, first) {
             let r = score_views(gt, pred, &names, &format!("_relit_{env}"), &mut missing)?;
             if !r.psnr.is_empty() {
-                let (scale, aligned) = r.aligned();
-                relit.insert(env, json!({"views": r.psnr.len(), "psnr": mean(&r.psnr), "ssim": mean(&r.ssim), "psnr_aligned": aligned, "scale": scale, "per_view": r.per_view}));
+                let (scale, aligned) = scale_aligned_psnr(&r.images);
+                relit.insert(env, json!({"views": r.psnr.len(), "psnr": mean(&r.psnr), "ssim": mean(&r.ssim), "psnr_aligned": mean(&aligned), "scale": scale, "per_view": r.per_view}));
             }
         }
     }
@@ -197,8 +196,7 @@ pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
         albedo.push((p.rgb(), g.rgb(), g.alpha()));
     }
     if !albedo.is_empty() {
-        let s = ls_scale_rgb(albedo.iter().map(|(p, g, m)| (&p[..], &g[..], m.as_deref())));
-        let ps: Vec<f64> = albedo.iter().map(|(p, g, m)| psnr_srgb(&apply_scale(p, s), g, m.as_deref())).collect();
+        let (s, ps) = scale_aligned_psnr(&albedo);
         report.insert("albedo".into(), json!({"views": ps.len(), "scale": s, "psnr_aligned": mean(&ps), "per_view_psnr": ps}));
     }
 
