@@ -187,6 +187,9 @@ fn bake_trains_both_stages_and_ships_them() {
     assert_eq!(report["stages"].as_array().unwrap().len(), 3);
     assert_eq!(report["training"]["steps"], 4);
     assert!(report["training"]["hull_init"]["fit_steps"] == 10);
+    // The hull's concavities were looked for by photo-consistency (the spot has none to speak of).
+    let cc = &report["training"]["hull_init"]["concavities"];
+    assert!(cc["rays"].as_u64().unwrap() > 0 && cc["rounds"].as_u64().unwrap() >= 1, "{cc}");
     assert!(report["ground_truth"]["metrics"]["chamfer"].as_f64().is_some(), "{}", report["ground_truth"]);
     // The Blender check rendered the .glb from a held-out camera and scored it against the photo.
     let bc = &report["blender_check"];

@@ -116,6 +116,36 @@ pub struct Stage1Run {
     pub report: serde_json::Value,
 }
 
+/// The hull a hull-initialised stage 1 fits: the visual hull of the masks (seen by at least half
+/// of the views), its concavities carved by photo-consistency (`cfg.concavity_rounds`), as a
+/// smoothed signed distance grid. None when the masks leave no voxel.
+pub fn hull_init_grid(views: &[&View], cfg: &Stage1Config) -> Option<(super::hull::Grid3, HullInit)> {
+    let adapters: Vec<ViewAdapter> = views.iter().map(|v| ViewAdapter::new(v)).collect();
+    let mv: Vec<&dyn MaskView> = adapters.iter().map(|a| a as &dyn MaskView).collect();
+    let res = cfg.sizes.hull_resolution;
+    let mut inside = carve(&mv, res, 1.0, 0.5, (views.len() / 2).max(1));
+    let visual_hull_voxels = inside.iter().filter(|b| **b).count();
+    if visual_hull_voxels == 0 {
+        return None;
+    }
+    let mut concavities = super::photo::ConcavityReport::default();
+    if cfg.concavity_rounds > 0 {
+        let pv: Vec<&dyn super::photo::PhotoView> = adapters.iter().map(|a| a as &dyn super::photo::PhotoView).collect();
+        let cc = super::photo::ConcavityCarve { rounds: cfg.concavity_rounds, ..Default::default() };
+        concavities = super::photo::carve_concavities(&pv, &mut inside, res, 1.0, &cc);
+    }
+    let voxels_inside = inside.iter().filter(|b| **b).count();
+    Some((smooth(signed_distance(&inside, res, 1.0)), HullInit { visual_hull_voxels, voxels_inside, concavities }))
+}
+
+/// What [`hull_init_grid`] built.
+#[derive(Clone, Debug, Serialize)]
+pub struct HullInit {
+    pub visual_hull_voxels: usize,
+    pub voxels_inside: usize,
+    pub concavities: super::photo::ConcavityReport,
+}
+
 pub fn train_views(scene: &Scene) -> (Vec<&View>, Vec<&View>) {
     let mut train: Vec<&View> = scene.views_in(Split::Train).collect();
     let mut held: Vec<&View> = scene.views_in(Split::Test).collect();
@@ -292,21 +322,22 @@ pub fn train_stage1(
             if views.iter().any(|v| v.mask.is_none()) {
                 anyhow::bail!("the hull init needs masks");
             }
-            let adapters: Vec<ViewAdapter> = views.iter().map(|v| ViewAdapter::new(v)).collect();
-            let mv: Vec<&dyn MaskView> = adapters.iter().map(|a| a as &dyn MaskView).collect();
             let res = cfg.sizes.hull_resolution;
-            let min_views = (views.len() / 2).max(1);
-            let inside = carve(&mv, res, 1.0, 0.5, min_views);
-            let n_in = inside.iter().filter(|b| **b).count();
-            if n_in == 0 {
+            let Some((grid, hull)) = hull_init_grid(&views, &cfg) else {
                 return Err(DataError::new(scene_path, "the masks carve away every voxel of the unit cube: the cameras and masks do not agree on an object (check poses and masks)").into());
+            };
+            if hull.concavities.carved_voxels > 0 {
+                ctx.say(format!(
+                    "hull init: photo-consistency carved {} voxels of concavities the masks cannot see ({} of {} rays found a deeper consistent surface, {} rounds)",
+                    hull.concavities.carved_voxels, hull.concavities.deeper_rays, hull.concavities.rays, hull.concavities.rounds
+                ));
             }
-            let grid = smooth(signed_distance(&inside, res, 1.0));
+            let n_in = hull.voxels_inside;
             let pb = ctx.progress(cfg.hull_fit_steps, "hull init");
             let err = t.fit_to_grid(backend, &grid, cfg.hull_fit_steps, |s, _| pb.set_position(s + 1))?;
             pb.finish_and_clear();
             seconds_init = ti.elapsed().as_secs_f64();
-            hull_report = serde_json::json!({ "resolution": res, "voxels_inside": n_in, "fit_steps": cfg.hull_fit_steps, "fit_loss": err, "seconds": seconds_init });
+            hull_report = serde_json::json!({ "resolution": res, "voxels_inside": n_in, "concavities": hull.concavities, "fit_steps": cfg.hull_fit_steps, "fit_loss": err, "seconds": seconds_init });
             ctx.say(format!("hull init: {res}^3 hull, {} fit steps, loss {err:.4} [{seconds_init:.1} s]", cfg.hull_fit_steps));
         }
         t

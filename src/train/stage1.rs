@@ -108,6 +108,10 @@ pub struct Stage1Config {
     pub hull_fit_lr: f32,
     #[serde(default = "default_hull_fit_lr_final")]
     pub hull_fit_lr_final: f32,
+    /// Rounds of photo-consistency carving of the hull's concavities before the hull fit
+    /// (`photo::carve_concavities`; 0 = the plain visual hull).
+    #[serde(default)]
+    pub concavity_rounds: usize,
     pub rays: usize,
     pub iterations: u64,
     pub lr_field: f32,
@@ -199,6 +203,7 @@ impl Stage1Config {
             // Run files written before this field existed read it as 1.0 (the constant rate they
             // were trained with, `default_hull_fit_lr_final`).
             hull_fit_lr_final: 0.1,
+            concavity_rounds: 4,
             rays: 1024,
             iterations: 1000,
             lr_field: 2e-4,
