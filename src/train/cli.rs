@@ -116,6 +116,9 @@ pub struct Stage1Run {
     pub report: serde_json::Value,
 }
 
+/// The finest grid the concavity carving runs on.
+const CONCAVITY_RES: usize = 96;
+
 /// The hull a hull-initialised stage 1 fits: the visual hull of the masks (seen by at least half
 /// of the views), its concavities carved by photo-consistency (`cfg.concavity_rounds`), as a
 /// smoothed signed distance grid. None when the masks leave no voxel.
@@ -132,7 +135,31 @@ pub fn hull_init_grid(views: &[&View], cfg: &Stage1Config) -> Option<(super::hul
     if cfg.concavity_rounds > 0 {
         let pv: Vec<&dyn super::photo::PhotoView> = adapters.iter().map(|a| a as &dyn super::photo::PhotoView).collect();
         let cc = super::photo::ConcavityCarve { rounds: cfg.concavity_rounds, ..Default::default() };
-        concavities = super::photo::carve_concavities(&pv, &mut inside, res, 1.0, &cc);
+        // On a grid of at most CONCAVITY_RES voxels a side (its cost grows with the cube of the
+        // resolution); a finer hull loses the voxels whose coarse voxel was carved.
+        let cres = res.min(CONCAVITY_RES);
+        if cres == res {
+            concavities = super::photo::carve_concavities(&pv, &mut inside, res, 1.0, &cc);
+        } else {
+            let coarse_hull = carve(&mv, cres, 1.0, 0.5, (views.len() / 2).max(1));
+            let mut coarse = coarse_hull.clone();
+            concavities = super::photo::carve_concavities(&pv, &mut coarse, cres, 1.0, &cc);
+            let fine = super::hull::Grid3::new(res, 1.0, 0.0);
+            let mut removed = 0;
+            for (id, b) in inside.iter_mut().enumerate() {
+                if !*b {
+                    continue;
+                }
+                let c = fine.centre(id % res, (id / res) % res, id / (res * res));
+                let q = |a: f32| (((a + 1.0) / 2.0 * cres as f32) as usize).min(cres - 1);
+                let cid = (q(c[2]) * cres + q(c[1])) * cres + q(c[0]);
+                if coarse_hull[cid] && !coarse[cid] {
+                    *b = false;
+                    removed += 1;
+                }
+            }
+            concavities.carved_voxels = removed;
+        }
     }
     let voxels_inside = inside.iter().filter(|b| **b).count();
     Some((smooth(signed_distance(&inside, res, 1.0)), HullInit { visual_hull_voxels, voxels_inside, concavities }))

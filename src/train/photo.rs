@@ -92,6 +92,9 @@ struct RayOutcome {
     t_deep: f32,
 }
 
+/// Views each reference view is matched against (the closest in direction).
+const NEIGHBOURS: usize = 23;
+
 /// Depth (voxels) behind a photo-consistent surface that its ray votes to keep.
 const KEEP_DEPTH: f32 = 4.0;
 
@@ -135,16 +138,17 @@ pub struct ConcavityReport {
 /// `best` lowest per-view patch costs (|√a − √b|, mean over a 3×3 pixel patch and channels),
 /// skipping `reference` and views that do not show `p` on their mask. None when fewer than
 /// `best` views show it.
-fn consistency(views: &[&dyn PhotoView], reference: usize, patch: &[[f32; 3]; 9], p: [f32; 3], best: usize, costs: &mut Vec<f32>) -> Option<f32> {
+fn consistency(views: &[&dyn PhotoView], reference: usize, others: &[usize], patch: &[[f32; 3]; 9], p: [f32; 3], best: usize, costs: &mut Vec<f32>) -> Option<f32> {
     costs.clear();
     let to_ref = sub(views[reference].centre(), p);
-    for (vi, v) in views.iter().enumerate() {
+    for &vi in others {
+        let v = views[vi];
         // Only views on the reference camera's side of the point can see the same surface.
-        if vi == reference || dot(sub(v.centre(), p), to_ref) <= 0.0 {
+        if dot(sub(v.centre(), p), to_ref) <= 0.0 {
             continue;
         }
         let Some(px) = v.project(p) else { continue };
-        let Some(c) = sample_patch(*v, px) else { continue };
+        let Some(c) = sample_patch(v, px) else { continue };
         let mut e = 0.0;
         for (a, b) in c.iter().zip(patch) {
             for ch in 0..3 {
@@ -191,6 +195,17 @@ pub fn carve_concavities(views: &[&dyn PhotoView], inside: &mut [bool], res: usi
     // After the first round only the surface near what was carved can see anything new.
     let mut near_change: Option<Vec<bool>> = None;
     let mut typical: Option<f32> = None;
+    // Each reference view is matched against its NEIGHBOURS closest views (by direction from the
+    // centre of the frame), which bounds the cost on captures with many views.
+    let neighbours: Vec<Vec<usize>> = (0..views.len())
+        .map(|r| {
+            let d = normalize(views[r].centre());
+            let mut o: Vec<usize> = (0..views.len()).filter(|&v| v != r).collect();
+            o.sort_by(|&a, &b| dot(normalize(views[b].centre()), d).total_cmp(&dot(normalize(views[a].centre()), d)));
+            o.truncate(NEIGHBOURS);
+            o
+        })
+        .collect();
     for _ in 0..cfg.rounds {
         report.rounds += 1;
         let sdf = super::hull::signed_distance(inside, res, bound);
@@ -240,7 +255,7 @@ pub fn carve_concavities(views: &[&dyn PhotoView], inside: &mut [bool], res: usi
                     // Around the surface: −1 … +1 voxels.
                     let mut c_surf = f32::INFINITY;
                     for t in [-1.0f32, -0.5, 0.0, 0.5, 1.0] {
-                        if let Some(e) = consistency(views, r, &patch, at(t), cfg.best_views, &mut costs) {
+                        if let Some(e) = consistency(views, r, &neighbours[r], &patch, at(t), cfg.best_views, &mut costs) {
                             c_surf = c_surf.min(e);
                         }
                     }
@@ -251,7 +266,7 @@ pub fn carve_concavities(views: &[&dyn PhotoView], inside: &mut [bool], res: usi
                     let (mut c_deep, mut t_deep) = (f32::INFINITY, 0.0f32);
                     let mut t = 3.0f32;
                     while occupied(at(t)).is_some() {
-                        if let Some(e) = consistency(views, r, &patch, at(t), cfg.best_views, &mut costs) {
+                        if let Some(e) = consistency(views, r, &neighbours[r], &patch, at(t), cfg.best_views, &mut costs) {
                             if e < c_deep {
                                 c_deep = e;
                                 t_deep = t;
@@ -305,12 +320,16 @@ pub fn carve_concavities(views: &[&dyn PhotoView], inside: &mut [bool], res: usi
                 t += 0.25;
             }
         }
-        let mut changed = vec![false; inside.len()];
+        let voted: Vec<bool> = (0..inside.len())
+            .map(|id| inside[id] && free_votes[id] >= cfg.min_votes && free_views[id].count_ones() >= cfg.min_views && free_votes[id] > keep_votes[id])
+            .collect();
+        // Free space is reached from outside: only voted voxels connected to the outside through
+        // voted voxels are carved (no bubbles inside the solid).
+        let changed = reachable_from_outside(inside, &voted, res);
         let mut carved = 0;
-        for (id, b) in inside.iter_mut().enumerate() {
-            if *b && free_votes[id] >= cfg.min_votes && free_views[id].count_ones() >= cfg.min_views && free_votes[id] > keep_votes[id] {
+        for (b, &c) in inside.iter_mut().zip(&changed) {
+            if c {
                 *b = false;
-                changed[id] = true;
                 carved += 1;
             }
         }
@@ -325,6 +344,41 @@ pub fn carve_concavities(views: &[&dyn PhotoView], inside: &mut [bool], res: usi
         report.dropped_fragments = drop_fragments(inside, &hull, res, 0.01);
     }
     report
+}
+
+/// The `voted` voxels that a 6-connected path through voted or outside voxels joins to the
+/// outside of `inside` (the grid's border counts as outside).
+fn reachable_from_outside(inside: &[bool], voted: &[bool], res: usize) -> Vec<bool> {
+    let mut seen = vec![false; inside.len()];
+    let mut stack: Vec<usize> = Vec::new();
+    for id in 0..inside.len() {
+        if !inside[id] {
+            seen[id] = true;
+            stack.push(id);
+        } else if voted[id] {
+            let (i, j, k) = (id % res, (id / res) % res, id / (res * res));
+            if [i, j, k].iter().any(|&a| a == 0 || a + 1 == res) {
+                seen[id] = true;
+                stack.push(id);
+            }
+        }
+    }
+    let r = res as i64;
+    while let Some(id) = stack.pop() {
+        let (i, j, k) = ((id % res) as i64, ((id / res) % res) as i64, (id / (res * res)) as i64);
+        for (a, b, c) in [(1i64, 0i64, 0i64), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)] {
+            let (x, y, z) = (i + a, j + b, k + c);
+            if x < 0 || y < 0 || z < 0 || x >= r || y >= r || z >= r {
+                continue;
+            }
+            let n = ((z * r + y) * r + x) as usize;
+            if !seen[n] && voted[n] {
+                seen[n] = true;
+                stack.push(n);
+            }
+        }
+    }
+    (0..inside.len()).map(|id| inside[id] && voted[id] && seen[id]).collect()
 }
 
 /// Voxels within `r` steps (26-neighbourhood) of a marked one.

@@ -109,7 +109,7 @@ pub struct Stage1Config {
     #[serde(default = "default_hull_fit_lr_final")]
     pub hull_fit_lr_final: f32,
     /// Rounds of photo-consistency carving of the hull's concavities before the hull fit
-    /// (`photo::carve_concavities`; 0 = the plain visual hull).
+    /// (`photo::carve_concavities`, on a grid of at most 96 voxels a side; 0 = the plain visual hull).
     #[serde(default)]
     pub concavity_rounds: usize,
     pub rays: usize,
