@@ -191,7 +191,7 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
         // What a hull-initialised run fits: the hull with its concavities carved by photo-consistency.
         let t = Instant::now();
         let init_cfg = super::stage1::apply_overrides(base_cfg.clone(), &args.overrides)?;
-        let (init_grid, init_info) = super::cli::hull_init_grid(&views, &init_cfg).unwrap_or((grid.clone(), super::cli::HullInit { visual_hull_voxels: 0, voxels_inside: 0, concavities: Default::default() }));
+        let (init_grid, init_info) = super::cli::hull_init_grid(&views, &init_cfg).unwrap_or_else(|| (grid.clone(), Default::default()));
         let init_secs = t.elapsed().as_secs_f64();
         if init_cfg.concavity_rounds > 0 {
             let f = |p: &[f32]| Ok(p.chunks_exact(3).map(|q| init_grid.sample([q[0], q[1], q[2]])).collect());

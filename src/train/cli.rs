@@ -126,9 +126,9 @@ pub fn hull_init_grid(views: &[&View], cfg: &Stage1Config) -> Option<(super::hul
     let adapters: Vec<ViewAdapter> = views.iter().map(|v| ViewAdapter::new(v)).collect();
     let mv: Vec<&dyn MaskView> = adapters.iter().map(|a| a as &dyn MaskView).collect();
     let res = cfg.sizes.hull_resolution;
-    let mut inside = carve(&mv, res, 1.0, 0.5, (views.len() / 2).max(1));
-    let visual_hull_voxels = inside.iter().filter(|b| **b).count();
-    if visual_hull_voxels == 0 {
+    let visual_hull = |res: usize| carve(&mv, res, 1.0, 0.5, (views.len() / 2).max(1));
+    let mut inside = visual_hull(res);
+    if !inside.contains(&true) {
         return None;
     }
     let mut concavities = super::photo::ConcavityReport::default();
@@ -141,18 +141,17 @@ pub fn hull_init_grid(views: &[&View], cfg: &Stage1Config) -> Option<(super::hul
         if cres == res {
             concavities = super::photo::carve_concavities(&pv, &mut inside, res, 1.0, &cc);
         } else {
-            let coarse_hull = carve(&mv, cres, 1.0, 0.5, (views.len() / 2).max(1));
+            let coarse_hull = visual_hull(cres);
             let mut coarse = coarse_hull.clone();
             concavities = super::photo::carve_concavities(&pv, &mut coarse, cres, 1.0, &cc);
-            let fine = super::hull::Grid3::new(res, 1.0, 0.0);
             let mut removed = 0;
             for (id, b) in inside.iter_mut().enumerate() {
                 if !*b {
                     continue;
                 }
-                let c = fine.centre(id % res, (id / res) % res, id / (res * res));
-                let q = |a: f32| (((a + 1.0) / 2.0 * cres as f32) as usize).min(cres - 1);
-                let cid = (q(c[2]) * cres + q(c[1])) * cres + q(c[0]);
+                // The coarse voxel holding this voxel's centre.
+                let q = |a: usize| (((2 * a + 1) * cres) / (2 * res)).min(cres - 1);
+                let cid = (q(id / (res * res)) * cres + q((id / res) % res)) * cres + q(id % res);
                 if coarse_hull[cid] && !coarse[cid] {
                     *b = false;
                     removed += 1;
@@ -162,13 +161,12 @@ pub fn hull_init_grid(views: &[&View], cfg: &Stage1Config) -> Option<(super::hul
         }
     }
     let voxels_inside = inside.iter().filter(|b| **b).count();
-    Some((smooth(signed_distance(&inside, res, 1.0)), HullInit { visual_hull_voxels, voxels_inside, concavities }))
+    Some((smooth(signed_distance(&inside, res, 1.0)), HullInit { voxels_inside, concavities }))
 }
 
 /// What [`hull_init_grid`] built.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Default)]
 pub struct HullInit {
-    pub visual_hull_voxels: usize,
     pub voxels_inside: usize,
     pub concavities: super::photo::ConcavityReport,
 }

@@ -127,6 +127,8 @@ pub struct ConcavityReport {
     pub rays: usize,
     /// Rays that found a deeper, more photo-consistent surface.
     pub deeper_rays: usize,
+    /// Voxels carved (of the grid the caller passed; `train::cli::hull_init_grid` reports those
+    /// of its finer hull when it carved a coarser one).
     pub carved_voxels: usize,
     /// Carved voxels the final majority filter put back.
     pub restored_voxels: usize,
@@ -222,15 +224,8 @@ pub fn carve_concavities(views: &[&dyn PhotoView], inside: &mut [bool], res: usi
         };
         let surface: Vec<usize> = (0..inside.len())
             .filter(|&id| {
-                if !inside[id] || !near_change.as_ref().map_or(true, |n| n[id]) {
-                    return false;
-                }
-                let (i, j, k) = (id % res, (id / res) % res, id / (res * res));
-                [(1i64, 0i64, 0i64), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)].iter().any(|&(a, b, c)| {
-                    let (x, y, z) = (i as i64 + a, j as i64 + b, k as i64 + c);
-                    let r = res as i64;
-                    x < 0 || y < 0 || z < 0 || x >= r || y >= r || z >= r || !inside[idx(x as usize, y as usize, z as usize)]
-                })
+                // Inside, with a face on the outside or on the grid's border.
+                inside[id] && near_change.as_ref().map_or(true, |n| n[id]) && (on_border(id, res) || neighbours6(id, res).any(|n| !inside[n]))
             })
             .collect();
         // Every (surface voxel, view) ray: its start, direction and costs.
@@ -355,23 +350,13 @@ fn reachable_from_outside(inside: &[bool], voted: &[bool], res: usize) -> Vec<bo
         if !inside[id] {
             seen[id] = true;
             stack.push(id);
-        } else if voted[id] {
-            let (i, j, k) = (id % res, (id / res) % res, id / (res * res));
-            if [i, j, k].iter().any(|&a| a == 0 || a + 1 == res) {
-                seen[id] = true;
-                stack.push(id);
-            }
+        } else if voted[id] && on_border(id, res) {
+            seen[id] = true;
+            stack.push(id);
         }
     }
-    let r = res as i64;
     while let Some(id) = stack.pop() {
-        let (i, j, k) = ((id % res) as i64, ((id / res) % res) as i64, (id / (res * res)) as i64);
-        for (a, b, c) in [(1i64, 0i64, 0i64), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)] {
-            let (x, y, z) = (i + a, j + b, k + c);
-            if x < 0 || y < 0 || z < 0 || x >= r || y >= r || z >= r {
-                continue;
-            }
-            let n = ((z * r + y) * r + x) as usize;
+        for n in neighbours6(id, res) {
             if !seen[n] && voted[n] {
                 seen[n] = true;
                 stack.push(n);
@@ -396,11 +381,27 @@ fn dilate(mark: &[bool], res: usize, r: usize) -> Vec<bool> {
     cur
 }
 
+/// Is voxel `id` on a face of the grid?
+fn on_border(id: usize, res: usize) -> bool {
+    [id % res, (id / res) % res, id / (res * res)].iter().any(|&a| a == 0 || a + 1 == res)
+}
+
+/// The face neighbours of voxel `id` inside the grid.
+fn neighbours6(id: usize, res: usize) -> impl Iterator<Item = usize> {
+    offset_neighbours(id, res, [(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)].into_iter())
+}
+
+/// The face, edge and corner neighbours of voxel `id` inside the grid.
 fn neighbours26(id: usize, res: usize) -> impl Iterator<Item = usize> {
+    offset_neighbours(id, res, (0..27i64).filter(|&d| d != 13).map(|d| (d % 3 - 1, (d / 3) % 3 - 1, d / 9 - 1)))
+}
+
+/// The voxels at `offsets` from voxel `id` that lie inside the grid.
+fn offset_neighbours(id: usize, res: usize, offsets: impl Iterator<Item = (i64, i64, i64)>) -> impl Iterator<Item = usize> {
     let (i, j, k) = ((id % res) as i64, ((id / res) % res) as i64, (id / (res * res)) as i64);
     let r = res as i64;
-    (0..27).filter(|&d| d != 13).filter_map(move |d| {
-        let (x, y, z) = (i + d % 3 - 1, j + (d / 3) % 3 - 1, k + d / 9 - 1);
+    offsets.filter_map(move |(a, b, c)| {
+        let (x, y, z) = (i + a, j + b, k + c);
         (x >= 0 && y >= 0 && z >= 0 && x < r && y < r && z < r).then(|| ((z * r + y) * r + x) as usize)
     })
 }
