@@ -12,6 +12,7 @@
 //! | relit view PSNR/SSIM, per environment `<env>` | `test/<name>_relit_<env>.png` | same name (`.png`/`.exr`) |
 //! | albedo PSNR after per-channel LS scale (all views together) | `test/<name>_albedo.png` | same name |
 //! | roughness MSE (GT alpha-weighted) | `test/<name>_roughness.png` | same name |
+//! | normal mean angular error, degrees (pixels both cover) | `test/<name>_normal.png` (world n·0.5+0.5, linear) | same name |
 //!
 //! and once: environment error after per-channel scale alignment, GT `env/train.exr` vs `env.exr` (same
 //! latlong convention, resampled to the GT size if needed; `--gt-env/--pred-env` override), and Chamfer
@@ -220,6 +221,28 @@ pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
         report.insert("roughness".into(), json!({"views": rough.len(), "mse": mean(&rough), "per_view_mse": rough}));
     }
 
+    let mut normal = Vec::new();
+    for name in &names {
+        let rel = format!("test/{name}_normal");
+        let gp = gt.join(format!("{rel}.png"));
+        if !gp.is_file() {
+            continue;
+        }
+        let Some(pp) = find_pred(&pred.join(&rel)) else {
+            missing.push(rel);
+            continue;
+        };
+        let g = read_image_linear(&gp)?;
+        let p = read_image_linear(&pp)?;
+        same_size(&p, &g, &pp, &gp)?;
+        if let Some(e) = normal_error_degrees((&stored_values(&p, &pp), p.alpha()), (&stored_values(&g, &gp), g.alpha())) {
+            normal.push(e);
+        }
+    }
+    if !normal.is_empty() {
+        report.insert("normal".into(), json!({"views": normal.len(), "mae_degrees": mean(&normal), "per_view_mae_degrees": normal}));
+    }
+
     let gt_env = args.gt_env.clone().unwrap_or_else(|| gt.join("env").join("train.exr"));
     let pred_env = args.pred_env.clone().unwrap_or_else(|| pred.join("env.exr"));
     if pred_env.is_file() {
@@ -248,6 +271,35 @@ pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
     Ok(Value::Object(report))
 }
 
+/// An image's RGB as stored in the file: `read_image_linear` decodes PNGs as sRGB, so data PNGs
+/// (normal maps) are re-encoded; EXRs are returned as read.
+fn stored_values(img: &ImageF32, path: &Path) -> Vec<f32> {
+    let exr = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("exr"));
+    if exr { img.rgb() } else { super::encode_srgb(&img.rgb()) }
+}
+
+/// Mean angle in degrees between two normal maps given as (RGB = n·0.5 + 0.5, alpha) over the
+/// pixels both cover (alpha ≥ 0.5 where an image has alpha); None where no pixel is covered by both.
+pub fn normal_error_degrees(pred: (&[f32], Option<Vec<f32>>), gt: (&[f32], Option<Vec<f32>>)) -> Option<f64> {
+    let ((pn, pa), (gn, ga)) = (pred, gt);
+    let (mut sum, mut count) = (0.0f64, 0usize);
+    for i in 0..pn.len() / 3 {
+        let covered = |a: &Option<Vec<f32>>| a.as_ref().is_none_or(|a| a[i] >= 0.5);
+        if !(covered(&pa) && covered(&ga)) {
+            continue;
+        }
+        let unit = |v: &[f32]| {
+            let d = glam::DVec3::new(v[0] as f64, v[1] as f64, v[2] as f64) * 2.0 - 1.0;
+            d.try_normalize()
+        };
+        if let (Some(a), Some(b)) = (unit(&pn[3 * i..3 * i + 3]), unit(&gn[3 * i..3 * i + 3])) {
+            sum += a.dot(b).clamp(-1.0, 1.0).acos().to_degrees();
+            count += 1;
+        }
+    }
+    (count > 0).then(|| sum / count as f64)
+}
+
 pub fn run(args: &EvalArgs, ctx: &Context) -> anyhow::Result<()> {
     if let Some(out) = &args.out {
         crate::util::ensure_writable_parent(out)?;
@@ -273,6 +325,9 @@ pub fn run(args: &EvalArgs, ctx: &Context) -> anyhow::Result<()> {
     if let Some(r) = report.get("roughness") {
         ctx.say(format!("roughness    MSE {}", f(&r["mse"])));
     }
+    if let Some(n) = report.get("normal") {
+        ctx.say(format!("normal       mean angular error {} degrees", f(&n["mae_degrees"])));
+    }
     if let Some(e) = report.get("env") {
         ctx.say(format!("environment  rel. L2 {}  log-MSE {} (scale {})", f(&e["relative_l2"]), f(&e["log_mse"]), e["scale"]));
     }
@@ -285,4 +340,30 @@ pub fn run(args: &EvalArgs, ctx: &Context) -> anyhow::Result<()> {
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::normal_error_degrees;
+
+    fn map(n: [f64; 3], pixels: usize) -> Vec<f32> {
+        (0..pixels).flat_map(|_| n.map(|v| (v * 0.5 + 0.5) as f32)).collect()
+    }
+
+    #[test]
+    fn normal_error_is_the_mean_angle_over_covered_pixels() {
+        let up = map([0.0, 0.0, 1.0], 4);
+        let side = map([1.0, 0.0, 0.0], 4);
+        let tilted = map([0.0, 0.5f64.sqrt(), 0.5f64.sqrt()], 4);
+        assert!(normal_error_degrees((&up, None), (&up, None)).unwrap().abs() < 1e-6);
+        assert!((normal_error_degrees((&up, None), (&side, None)).unwrap() - 90.0).abs() < 1e-4);
+        assert!((normal_error_degrees((&up, None), (&tilted, None)).unwrap() - 45.0).abs() < 1e-4);
+        // Only pixels both maps cover count: the uncovered ones (wrong normals) are ignored.
+        let mut mixed = up.clone();
+        mixed[..6].copy_from_slice(&side[..6]);
+        let alpha = Some(vec![0.0, 0.0, 1.0, 1.0]);
+        assert!(normal_error_degrees((&mixed, alpha.clone()), (&up, None)).unwrap().abs() < 1e-6);
+        assert!((normal_error_degrees((&mixed, None), (&up, None)).unwrap() - 45.0).abs() < 1e-4);
+        assert!(normal_error_degrees((&mixed, Some(vec![0.0; 4])), (&up, None)).is_none());
+    }
 }

@@ -372,6 +372,8 @@ pub struct RenderedView {
     pub rgb: Vec<[f32; 3]>,
     pub albedo: Vec<[f32; 3]>,
     pub roughness: Vec<f32>,
+    /// The shading normal (the model's normalised frame), facing the camera.
+    pub normal: Vec<[f32; 3]>,
 }
 
 /// Render `camera` at no more than `max_pixels` pixels (every `step`-th pixel, as `evaluate_views`),
@@ -410,6 +412,7 @@ pub fn render_view(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, model
     out.rgb = vec![[0.0; 3]; n];
     out.albedo = vec![[0.0; 3]; n];
     out.roughness = vec![0.0; n];
+    out.normal = vec![[0.0; 3]; n];
     for start in (0..n).step_by(8192) {
         let end = (start + 8192).min(n);
         let r = Rays { origins: rays.origins[start..end].to_vec(), dirs: rays.dirs[start..end].to_vec() };
@@ -441,6 +444,7 @@ pub fn render_view(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, model
             out.rgb[g] = rgb[k];
             out.albedo[g] = albedo[k];
             out.roughness[g] = rough[k];
+            out.normal[g] = c.n[k];
         }
     }
     Ok(out)
