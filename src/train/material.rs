@@ -405,6 +405,13 @@ pub fn stage2_geometry(s1: &Trainer, s2: &Stage2Trainer) -> anyhow::Result<Optio
 }
 
 pub fn render_view(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, model: &Stage2Model, camera: &Camera, max_pixels: usize, env: Option<&[Sg<f64>]>) -> Result<RenderedView, BackendError> {
+    Ok(render_view_lit(backend, sdf, tc, model, camera, max_pixels, &[env])?.remove(0))
+}
+
+/// [`render_view`] under several lights at once (None = the learned one): the camera rays are
+/// traced, and their normals and material evaluated, once for all of them. The views share their
+/// pixels and hits and differ in `rgb`.
+pub fn render_view_lit(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, model: &Stage2Model, camera: &Camera, max_pixels: usize, envs: &[Option<&[Sg<f64>]>]) -> Result<Vec<RenderedView>, BackendError> {
     let (rays, pixel_index) = subsampled_rays(camera, max_pixels);
     let mut out = RenderedView { width: camera.width, height: camera.height, pixel_index, ..Default::default() };
     let n = rays.len();
@@ -413,6 +420,7 @@ pub fn render_view(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, model
     out.albedo = vec![[0.0; 3]; n];
     out.roughness = vec![0.0; n];
     out.normal = vec![[0.0; 3]; n];
+    let mut rgbs = vec![vec![[0.0f32; 3]; n]; envs.len()];
     for start in (0..n).step_by(8192) {
         let end = (start + 8192).min(n);
         let r = Rays { origins: rays.origins[start..end].to_vec(), dirs: rays.dirs[start..end].to_vec() };
@@ -429,25 +437,29 @@ pub fn render_view(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, model
             }
         }
         let (albedo, rough) = model.material(backend, &c.x)?;
-        let rgb = match env {
-            None => {
-                let cfg = &model.cfg;
-                c.refresh(backend, sdf, cfg, &model.axes())?;
-                let all: Vec<usize> = (0..c.len()).collect();
-                super::stage2::render_points(backend, model, &c.batch(&all, cfg.lobes))?
+        for (e, env) in envs.iter().enumerate() {
+            let rgb = match env {
+                None => {
+                    let cfg = &model.cfg;
+                    c.refresh(backend, sdf, cfg, &model.axes())?;
+                    let all: Vec<usize> = (0..c.len()).collect();
+                    super::stage2::render_points(backend, model, &c.batch(&all, cfg.lobes))?
+                }
+                Some(lobes) => relight_points(backend, sdf, model, &c, &albedo, &rough, lobes)?,
+            };
+            for (k, &i) in idx.iter().enumerate() {
+                rgbs[e][start + i] = rgb[k];
             }
-            Some(lobes) => relight_points(backend, sdf, model, &c, &albedo, &rough, lobes)?,
-        };
+        }
         for (k, &i) in idx.iter().enumerate() {
             let g = start + i;
             out.hit[g] = true;
-            out.rgb[g] = rgb[k];
             out.albedo[g] = albedo[k];
             out.roughness[g] = rough[k];
             out.normal[g] = c.n[k];
         }
     }
-    Ok(out)
+    Ok(rgbs.into_iter().map(|rgb| RenderedView { rgb, ..out.clone() }).collect())
 }
 
 /// Shade points under another environment: direct light from its lobes; a lobe blocked by the

@@ -19,7 +19,7 @@ use std::time::Instant;
 
 use glam::{DMat3, DVec3};
 
-use super::material::{load_stage1, render_view, RenderedView};
+use super::material::{load_stage1, render_view_lit, RenderedView};
 use super::stage2::{Stage2Trainer, CHECKPOINT2};
 use crate::backend::BackendError;
 use crate::context::Context;
@@ -258,23 +258,22 @@ pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
     let mut edge_pixels = 0usize;
     for v in &views {
         let cam = v.camera.supersampled(ss);
-        let img = render_view(&backend, sdf, tc, &s2.model, &cam, 0, None)?;
-        let fp = Footprint::new(&|p: &[f32]| sdf.sdf(&backend, p), tc, &v.camera, &img, ss, EDGE_RAYS)?;
+        // One trace of the camera rays for the learned light and every map.
+        let lights: Vec<Option<&[Sg<f64>]>> = std::iter::once(None).chain(maps.iter().map(|(_, l, _)| Some(&l[..]))).collect();
+        let renders = render_view_lit(&backend, sdf, tc, &s2.model, &cam, 0, &lights)?;
+        let img = &renders[0];
+        let fp = Footprint::new(&|p: &[f32]| sdf.sdf(&backend, p), tc, &v.camera, img, ss, EDGE_RAYS)?;
         edge_pixels += fp.edge_pixels;
         fp.write(&test.join(format!("{}.png", v.name)), |k| img.rgb[k], true)?;
         fp.write(&test.join(format!("{}_albedo.png", v.name)), |k| img.albedo[k], true)?;
         fp.write(&test.join(format!("{}_roughness.png", v.name)), |k| [img.roughness[k]; 3], false)?;
         // The normalised frame is the scene's world frame translated and scaled: its normals are world normals.
         fp.write(&test.join(format!("{}_normal.png", v.name)), |k| img.normal[k].map(|c| c * 0.5 + 0.5), false)?;
-        n += 1;
-        pb.set_position(n);
-        for (stem, lobes, _) in &maps {
-            let r = render_view(&backend, sdf, tc, &s2.model, &cam, 0, Some(lobes))?;
-            // Same camera, same trace: the rays and hits are those of `img`.
+        for ((stem, _, _), r) in maps.iter().zip(&renders[1..]) {
             fp.write(&test.join(format!("{}_relit_{stem}.png", v.name)), |k| r.rgb[k], true)?;
-            n += 1;
-            pb.set_position(n);
         }
+        n += 1 + maps.len() as u64;
+        pb.set_position(n);
     }
     pb.finish_and_clear();
     write_latlong_exr(&s2.model.env_sgs(rotation), &args.out.join("env.exr"), 256, args.convention)?;
