@@ -125,18 +125,27 @@ fn scale_aligned_psnr(views: &[ViewImages]) -> ([f64; 3], Vec<f64>) {
     (s, views.iter().map(|(p, g, m)| psnr_srgb(&apply_scale(p, s), g, m.as_deref())).collect())
 }
 
+/// A test view's ground truth `<gt>/<rel>.png` and its prediction `<pred>/<rel>` (`.png`/`.exr`),
+/// each with its path, read as linear and checked to be the same size: `(prediction, ground
+/// truth)`. None, with `rel` listed as missing, where there is no prediction.
+fn read_pair(gt: &Path, pred: &Path, rel: String, missing: &mut Vec<String>) -> Result<Option<[(ImageF32, PathBuf); 2]>, DataError> {
+    let gp = gt.join(format!("{rel}.png"));
+    let Some(pp) = find_pred(&pred.join(&rel)) else {
+        missing.push(rel);
+        return Ok(None);
+    };
+    let g = read_image_linear(&gp)?;
+    let p = read_image_linear(&pp)?;
+    same_size(&p, &g, &pp, &gp)?;
+    Ok(Some([(p, pp), (g, gp)]))
+}
+
 fn score_views(gt: &Path, pred: &Path, names: &[String], suffix: &str, missing: &mut Vec<String>) -> Result<ViewScores, DataError> {
     let mut s = ViewScores { psnr: vec![], ssim: vec![], per_view: vec![], images: vec![] };
     for name in names {
-        let rel = format!("test/{name}{suffix}");
-        let gp = gt.join(format!("{rel}.png"));
-        let Some(pp) = find_pred(&pred.join(&rel)) else {
-            missing.push(rel);
+        let Some([(p, _), (g, _)]) = read_pair(gt, pred, format!("test/{name}{suffix}"), missing)? else {
             continue;
         };
-        let g = read_image_linear(&gp)?;
-        let p = read_image_linear(&pp)?;
-        same_size(&p, &g, &pp, &gp)?;
         let mask = g.alpha();
         let (prgb, grgb) = (p.rgb(), g.rgb());
         let ps = psnr_srgb(&prgb, &grgb, mask.as_deref());
@@ -185,15 +194,9 @@ pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
     // Albedo: one per-channel scale over all views, then PSNR per view.
     let mut albedo = Vec::new();
     for name in &names {
-        let rel = format!("test/{name}_albedo");
-        let gp = gt.join(format!("{rel}.png"));
-        let Some(pp) = find_pred(&pred.join(&rel)) else {
-            missing.push(rel);
+        let Some([(p, _), (g, _)]) = read_pair(gt, pred, format!("test/{name}_albedo"), &mut missing)? else {
             continue;
         };
-        let g = read_image_linear(&gp)?;
-        let p = read_image_linear(&pp)?;
-        same_size(&p, &g, &pp, &gp)?;
         albedo.push((p.rgb(), g.rgb(), g.alpha()));
     }
     if !albedo.is_empty() {
@@ -223,18 +226,14 @@ pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
 
     let mut normal = Vec::new();
     for name in &names {
+        // Optional in the ground truth (scenes written before make_scene's normal pass lack it).
         let rel = format!("test/{name}_normal");
-        let gp = gt.join(format!("{rel}.png"));
-        if !gp.is_file() {
+        if !gt.join(format!("{rel}.png")).is_file() {
             continue;
         }
-        let Some(pp) = find_pred(&pred.join(&rel)) else {
-            missing.push(rel);
+        let Some([(p, pp), (g, gp)]) = read_pair(gt, pred, rel, &mut missing)? else {
             continue;
         };
-        let g = read_image_linear(&gp)?;
-        let p = read_image_linear(&pp)?;
-        same_size(&p, &g, &pp, &gp)?;
         if let Some(e) = normal_error_degrees((&stored_values(&p, &pp), p.alpha()), (&stored_values(&g, &gp), g.alpha())) {
             normal.push(e);
         }

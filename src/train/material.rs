@@ -416,7 +416,6 @@ pub fn render_view_lit(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, m
     let mut out = RenderedView { width: camera.width, height: camera.height, pixel_index, ..Default::default() };
     let n = rays.len();
     out.hit = vec![false; n];
-    out.rgb = vec![[0.0; 3]; n];
     out.albedo = vec![[0.0; 3]; n];
     out.roughness = vec![0.0; n];
     out.normal = vec![[0.0; 3]; n];

@@ -256,10 +256,10 @@ pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
     let pb = ctx.progress((views.len() * (1 + maps.len())) as u64, "relight");
     let mut n = 0;
     let mut edge_pixels = 0usize;
+    // One trace of each view's camera rays serves the learned light (None) and every map.
+    let lights: Vec<Option<&[Sg<f64>]>> = std::iter::once(None).chain(maps.iter().map(|(_, l, _)| Some(&l[..]))).collect();
     for v in &views {
         let cam = v.camera.supersampled(ss);
-        // One trace of the camera rays for the learned light and every map.
-        let lights: Vec<Option<&[Sg<f64>]>> = std::iter::once(None).chain(maps.iter().map(|(_, l, _)| Some(&l[..]))).collect();
         let renders = render_view_lit(&backend, sdf, tc, &s2.model, &cam, 0, &lights)?;
         let img = &renders[0];
         let fp = Footprint::new(&|p: &[f32]| sdf.sdf(&backend, p), tc, &v.camera, img, ss, EDGE_RAYS)?;
