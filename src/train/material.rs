@@ -12,7 +12,7 @@ use anyhow::Context as _;
 use glam::DMat3;
 use rayon::prelude::*;
 
-use super::cli::{masked_srgb_error, read_curve, read_run_scene, subsampled_rays, train_views, training_progress, write_curve, RunScene, TrainedSdf};
+use super::cli::{covered_psnr, masked_srgb_error, read_curve, read_run_scene, subsampled_rays, train_views, training_progress, write_curve, RunScene, TrainedSdf};
 use super::stage1::{scene_key, Model as Stage1Model, Preset, TrainData, Trainer, CHECKPOINT};
 use super::stage2::{shade_f64, BoundaryMode, DecoderMode, IndirectMode, RoughnessMode, Stage2Config, Stage2Model, Stage2Stats, Stage2Trainer, SurfaceCache, CHECKPOINT2};
 use crate::backend::{Backend, BackendError};
@@ -288,17 +288,18 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     for v in &eval_views {
         let img = render_view(backend, &geom, &tc, &trainer.model, &v.camera, 80 * 80, None)?;
         let (mut vse, mut vw) = (0.0, 0.0);
-        for (k, &p) in img.pixel_index.iter().enumerate() {
+        // Over the pixels that the photo's mask and the render both cover (as `evaluate_views`).
+        for (k, &p) in img.pixel_index.iter().enumerate().filter(|&(k, _)| img.hit[k]) {
             if let Some(e) = masked_srgb_error(v, p, img.rgb[k].map(crate::image_io::linear_to_srgb)) {
                 vse += e;
                 vw += 3.0;
             }
         }
-        per_view.push(serde_json::json!({ "view": v.name, "psnr": crate::eval::psnr_from_mse(vse / f64::max(vw, 1.0)) }));
+        per_view.push(serde_json::json!({ "view": v.name, "psnr": covered_psnr(vse, vw) }));
         se += vse;
         wsum += vw;
     }
-    let psnr = crate::eval::psnr_from_mse(se / wsum.max(1.0));
+    let psnr = covered_psnr(se, wsum);
     let idle = trainer.model.idle_lobes().len();
     let (alb, rough) = trainer.model.material(backend, &cache.x[..cache.len().min(4096)])?;
     let mean_rough = rough.iter().map(|&r| r as f64).sum::<f64>() / rough.len().max(1) as f64;
@@ -336,7 +337,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "it_per_s": its,
         "material": { "mean_albedo": mean_alb, "mean_roughness": mean_rough },
         "environment": { "total_energy": trainer.model.lobe_energies().iter().sum::<f64>(), "lobes_exported": cfg.lobes - idle, "idle_lobe_fraction": super::stage2::IDLE_LOBE_FRACTION },
-        "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr": psnr, "per_view": per_view, "seconds": t_eval.elapsed().as_secs_f64() },
+        "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr_pixels": "covered by both the photo's mask and the render (the silhouette is scored by stage 1's mask IoU)", "psnr": psnr, "per_view": per_view, "seconds": t_eval.elapsed().as_secs_f64() },
         "weak_result": !flags.is_empty(),
         "flags": flags,
         "seconds": { "cache": seconds_cache, "train": seconds_train, "total": t_total.elapsed().as_secs_f64() },
