@@ -257,11 +257,18 @@ pub fn subsampled_rays(camera: &crate::scene::Camera, max_pixels: usize) -> (Ray
     (rays, idx)
 }
 
+/// Whether pixel `p` is on the view's photo mask (no mask: every pixel).
+pub fn on_mask(v: &View, p: usize) -> bool {
+    v.mask.as_ref().map_or(true, |m| m[p] >= 0.5)
+}
+
+/// What the held-out PSNR in the stage-1 and stage-2 reports is computed over.
+pub const HELD_OUT_PSNR_PIXELS: &str = "covered by both the photo's mask and the render (the silhouette is scored by stage 1's mask IoU)";
+
 /// Squared sRGB error, summed over the channels, of a rendered colour at pixel `p` of the view's
 /// photo, when the pixel is on the photo's mask (no mask: every pixel).
 pub fn masked_srgb_error(v: &View, p: usize, col: [f32; 3]) -> Option<f64> {
-    let m = v.mask.as_ref().map(|m| m[p]).unwrap_or(1.0);
-    (m >= 0.5).then(|| {
+    on_mask(v, p).then(|| {
         (0..3)
             .map(|ch| {
                 let gt = crate::image_io::linear_to_srgb(v.image.data[p * v.image.channels + ch].clamp(0.0, 1.0));
@@ -445,7 +452,7 @@ pub fn train_stage1(
         "last": last,
         "it_per_s": its,
         "hull_init": hull_report,
-        "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr_pixels": "covered by both the photo's mask and the render (the silhouette is scored by stage 1's mask IoU)", "psnr": ev.psnr, "mask_iou": ev.mask_iou, "per_view": ev.per_view, "seconds": t_eval.elapsed().as_secs_f64() },
+        "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr_pixels": HELD_OUT_PSNR_PIXELS, "psnr": ev.psnr, "mask_iou": ev.mask_iou, "per_view": ev.per_view, "seconds": t_eval.elapsed().as_secs_f64() },
         "weak_result": weak,
         "seconds": { "init": seconds_init, "train": seconds_train, "total": t_total.elapsed().as_secs_f64() },
     });
@@ -495,8 +502,8 @@ pub fn evaluate_views(backend: &Backend, model: &Model, tc: &TraceConfig, views:
         let (mut vse, mut vw, mut vi, mut vu) = (0.0f64, 0.0f64, 0usize, 0usize);
         for (k, &p) in idx.iter().enumerate() {
             let (hit, col) = img[k];
-            let inm = v.mask.as_ref().map_or(true, |m| m[p] >= 0.5);
-            if let Some(e) = masked_srgb_error(v, p, col).filter(|_| hit) {
+            let inm = on_mask(v, p);
+            if let Some(e) = hit.then(|| masked_srgb_error(v, p, col)).flatten() {
                 vse += e;
                 vw += 3.0;
             }

@@ -337,7 +337,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "it_per_s": its,
         "material": { "mean_albedo": mean_alb, "mean_roughness": mean_rough },
         "environment": { "total_energy": trainer.model.lobe_energies().iter().sum::<f64>(), "lobes_exported": cfg.lobes - idle, "idle_lobe_fraction": super::stage2::IDLE_LOBE_FRACTION },
-        "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr_pixels": "covered by both the photo's mask and the render (the silhouette is scored by stage 1's mask IoU)", "psnr": psnr, "per_view": per_view, "seconds": t_eval.elapsed().as_secs_f64() },
+        "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr_pixels": super::cli::HELD_OUT_PSNR_PIXELS, "psnr": psnr, "per_view": per_view, "seconds": t_eval.elapsed().as_secs_f64() },
         "weak_result": !flags.is_empty(),
         "flags": flags,
         "seconds": { "cache": seconds_cache, "train": seconds_train, "total": t_total.elapsed().as_secs_f64() },
