@@ -181,11 +181,22 @@ fn wgpu_matches_cpu_on_tracing_and_one_steps_gradients() {
 
 #[test]
 fn a_few_steps_learn_a_silhouette() {
+    // IDR's sampler (the paper preset) and the local one (the fast preset's): the mask loss
+    // learns from the min-SDF points either finds.
+    let idr = pii_bake::render::TraceConfig::new(TraceMode::Refined);
+    let fast = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Sphere, &[], 0, 1).trace;
+    assert!(fast.local_samples >= 2 && idr.local_samples == 0);
+    for tracing in [idr, fast] {
+        learn_a_silhouette(tracing);
+    }
+}
+
+fn learn_a_silhouette(tracing: pii_bake::render::TraceConfig) {
     // A synthetic "scene": an orthographic-ish ring of cameras around a sphere of radius 0.35;
     // training from the 0.5 sphere init must shrink the mask error.
     let b = Backend::cpu();
     let mut cfg = tiny_config();
-    cfg.trace = pii_bake::render::TraceConfig::new(TraceMode::Refined);
+    cfg.trace = tracing;
     cfg.rays = 256;
     let mut t = Trainer::new(cfg.clone()).unwrap();
     let target_r = 0.35f32;
@@ -224,7 +235,7 @@ fn a_few_steps_learn_a_silhouette() {
         assert!(applied);
     }
     let wrong_after = eval(&t, &mut pii_bake::util::rng(99));
-    assert!(wrong_after * 2 < wrong_before, "silhouette errors: {wrong_before} before, {wrong_after} after 25 steps");
+    assert!(wrong_after * 2 < wrong_before, "{:?} sampler, silhouette errors: {wrong_before} before, {wrong_after} after 25 steps", t.cfg.trace.local_samples);
     assert!(t.model.sdf_params.iter().all(|v| v.is_finite()));
 }
 

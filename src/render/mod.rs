@@ -14,7 +14,10 @@
 //!    (when tracing overshot) or the near intersection (when it ran out of steps) and the far
 //!    intersection; the first sign change (+ → −)
 //!    is refined by `secant_steps` secant steps; no sign change = miss. The sampler's smallest
-//!    value is that ray's min-SDF point (the mask loss reuses it);
+//!    value is that ray's min-SDF point (the mask loss reuses it). The *local* sampler
+//!    ([`TraceConfig::local_samples`]) spends its samples where sphere tracing says the answer
+//!    is: between the last point outside and the point inside for a ray that overshot, around
+//!    the closest visited point for a ray that left the sphere;
 //! 4. [`TraceMode::Refined`] (supplementary §6): threshold 1e-3 and one Newton step along the
 //!    ray on every hit, `t ← t − f(x)/(∂f/∂t)` with a central difference for `∂f/∂t`.
 //!
@@ -62,6 +65,13 @@ pub struct TraceConfig {
     pub bound: f32,
     /// Newton step after convergence (refined mode).
     pub newton: bool,
+    /// 0: IDR's sampler (every unfinished ray samples `sampler_samples` points over the rest of
+    /// its segment). Otherwise the *local* sampler: a ray that overshot samples this many points
+    /// between its last point outside and the point inside (the bracket sphere tracing found),
+    /// and a ray that left the sphere samples them around its closest visited point; only rays
+    /// out of steps sample their whole segment. Run files written before this field read 0.
+    #[serde(default)]
+    pub local_samples: usize,
 }
 
 impl TraceConfig {
@@ -75,6 +85,7 @@ impl TraceConfig {
                 secant_steps: 32,
                 bound: 1.0,
                 newton: false,
+                local_samples: 0,
             },
             TraceMode::Refined => Self {
                 mode,
@@ -84,6 +95,7 @@ impl TraceConfig {
                 secant_steps: 32,
                 bound: 1.0,
                 newton: true,
+                local_samples: 0,
             },
         }
     }
@@ -93,7 +105,8 @@ impl TraceConfig {
             && self.threshold > 0.0
             && self.bound.is_finite()
             && self.bound > 0.0
-            && self.sampler_samples >= 2;
+            && self.sampler_samples >= 2
+            && self.local_samples != 1;
         if !ok {
             return Err(BackendError::Config(format!("invalid trace settings {self:?}")));
         }
@@ -200,13 +213,12 @@ pub fn trace(f: &dyn SdfBatch, rays: &Rays, cfg: &TraceConfig) -> Result<TraceRe
         evaluations: 0,
     };
     let mut interval = vec![(0.0f32, 0.0f32); n];
-    // Rays still sphere tracing: (ray, t, last t with f > 0).
-    let mut active: Vec<(usize, f32, f32)> = Vec::with_capacity(n);
+    let mut active: Vec<Marching> = Vec::with_capacity(n);
     for i in 0..n {
         match sphere_interval(rays.origins[i], rays.dirs[i], cfg.bound) {
             Some((a, b)) => {
                 interval[i] = (a, b);
-                active.push((i, a, a));
+                active.push(Marching { ray: i, t: a, last_pos: a, best_f: f32::INFINITY, best_t: a, before_best: a });
             }
             None => {
                 // Closest point to the centre: the mask loss pushes the field up there.
@@ -218,17 +230,18 @@ pub fn trace(f: &dyn SdfBatch, rays: &Rays, cfg: &TraceConfig) -> Result<TraceRe
             }
         }
     }
-    // Unfinished rays for the sampler: (ray, t_start).
-    let mut unfinished: Vec<(usize, f32)> = Vec::new();
+    let local = cfg.local_samples >= 2;
+    // Unfinished rays for the sampler, and the closest point sphere tracing visited on each.
+    let mut unfinished: Vec<Segment> = Vec::new();
     for step in 0..=cfg.sphere_steps {
         if active.is_empty() {
             break;
         }
-        let pts: Vec<[f32; 3]> = active.iter().map(|&(i, t, _)| rays.at(i, t)).collect();
+        let pts: Vec<[f32; 3]> = active.iter().map(|m| rays.at(m.ray, m.t)).collect();
         let v = eval_at(f, &pts, &mut evals)?;
         let mut next = Vec::with_capacity(active.len());
-        for (k, &(i, t, last_pos)) in active.iter().enumerate() {
-            let fv = v[k];
+        for (k, m) in active.iter().enumerate() {
+            let (i, t, fv) = (m.ray, m.t, v[k]);
             if !fv.is_finite() {
                 // A broken field: treat as a miss at the near point.
                 res.t[i] = t;
@@ -242,63 +255,81 @@ pub fn trace(f: &dyn SdfBatch, rays: &Rays, cfg: &TraceConfig) -> Result<TraceRe
                 res.sdf[i] = fv;
                 continue;
             }
-            if fv < 0.0 || step == cfg.sphere_steps {
-                // Overshot into the surface (or out of steps): the sampler looks from the last
-                // point known outside.
+            let m = if fv < m.best_f { Marching { best_f: fv, best_t: t, before_best: m.last_pos, ..*m } } else { *m };
+            let visited = if local { Some((m.best_t, m.best_f)) } else { None };
+            if fv < 0.0 {
+                // Overshot into the surface: the first sign change lies after the last point
+                // known outside (IDR samples from there to the far end; the local sampler
+                // samples up to the point inside).
+                let t1 = if local { t } else { interval[i].1 };
+                let samples = if local { cfg.local_samples } else { cfg.sampler_samples };
+                unfinished.push(Segment { ray: i, t0: m.last_pos, t1, samples, visited });
+                continue;
+            }
+            if step == cfg.sphere_steps {
                 // Out of steps: the whole segment (its min-SDF point may lie behind t).
-                unfinished.push((i, if fv < 0.0 { last_pos } else { interval[i].0 }));
+                let (t0, t1) = interval[i];
+                unfinished.push(Segment { ray: i, t0, t1, samples: cfg.sampler_samples, visited });
                 continue;
             }
             let tn = t + fv;
             if tn > interval[i].1 {
-                // Left the sphere without meeting the surface: the smallest value seen so far is
-                // not a good min-SDF estimate, so let the sampler look at the whole segment.
-                unfinished.push((i, interval[i].0));
+                // Left the sphere without meeting the surface: sphere tracing's steps are too
+                // coarse a min-SDF estimate. IDR samples the whole segment; the local sampler
+                // samples between the points before and after the closest one visited.
+                let seg = if local {
+                    Segment { ray: i, t0: m.before_best, t1: (m.best_t + m.best_f).min(interval[i].1), samples: cfg.local_samples, visited }
+                } else {
+                    Segment { ray: i, t0: interval[i].0, t1: interval[i].1, samples: cfg.sampler_samples, visited: None }
+                };
+                unfinished.push(seg);
                 continue;
             }
-            next.push((i, tn, t));
+            next.push(Marching { t: tn, last_pos: t, ..m });
         }
         active = next;
     }
 
     // Sampler + secant on unfinished rays.
     if !unfinished.is_empty() {
-        let s = cfg.sampler_samples;
-        let mut pts = Vec::with_capacity(unfinished.len() * s);
-        for &(i, t0) in &unfinished {
-            let t1 = interval[i].1;
-            for j in 0..s {
-                let t = t0 + (t1 - t0) * j as f32 / (s - 1) as f32;
-                pts.push(rays.at(i, t));
-            }
+        let mut offsets = Vec::with_capacity(unfinished.len() + 1);
+        offsets.push(0usize);
+        for u in &unfinished {
+            offsets.push(offsets.last().copied().unwrap_or(0) + u.samples);
+        }
+        let mut pts = Vec::with_capacity(offsets[unfinished.len()]);
+        for u in &unfinished {
+            pts.extend((0..u.samples).map(|j| rays.at(u.ray, u.at(j))));
         }
         let v = eval_at(f, &pts, &mut evals)?;
         // Secant brackets: (ray, t_lo, f_lo, t_hi, f_hi).
         let mut brackets: Vec<(usize, f32, f32, f32, f32)> = Vec::new();
-        for (u, &(i, t0)) in unfinished.iter().enumerate() {
+        for (k, u) in unfinished.iter().enumerate() {
+            let i = u.ray;
             res.sampled[i] = true;
-            let t1 = interval[i].1;
-            let ts = |j: usize| t0 + (t1 - t0) * j as f32 / (s - 1) as f32;
-            let row = &v[u * s..(u + 1) * s];
+            let row = &v[offsets[k]..offsets[k + 1]];
             let mut found = None;
-            for j in 1..s {
+            for j in 1..row.len() {
                 if row[j - 1].is_finite() && row[j].is_finite() && row[j - 1] > 0.0 && row[j] <= 0.0 {
                     found = Some(j);
                     break;
                 }
             }
             match found {
-                Some(j) => brackets.push((i, ts(j - 1), row[j - 1], ts(j), row[j])),
+                Some(j) => brackets.push((i, u.at(j - 1), row[j - 1], u.at(j), row[j])),
                 None => {
-                    let (mut jm, mut vm) = (0, f32::INFINITY);
+                    let (mut tm, mut vm) = (u.t0, f32::INFINITY);
                     for (j, &x) in row.iter().enumerate() {
                         if x.is_finite() && x < vm {
                             vm = x;
-                            jm = j;
+                            tm = u.at(j);
                         }
                     }
-                    res.t[i] = ts(jm);
-                    res.points[i] = rays.at(i, res.t[i]);
+                    if let Some((tb, fb)) = u.visited.filter(|&(_, fb)| fb < vm) {
+                        (tm, vm) = (tb, fb);
+                    }
+                    res.t[i] = tm;
+                    res.points[i] = rays.at(i, tm);
                     res.sdf[i] = vm;
                 }
             }
@@ -367,6 +398,34 @@ pub fn trace(f: &dyn SdfBatch, rays: &Rays, cfg: &TraceConfig) -> Result<TraceRe
     }
     res.evaluations = evals;
     Ok(res)
+}
+
+/// A ray being sphere traced: where it is, the last point known outside, and the closest point
+/// visited so far (its value and the point before it), which the local sampler searches around.
+#[derive(Clone, Copy)]
+struct Marching {
+    ray: usize,
+    t: f32,
+    last_pos: f32,
+    best_f: f32,
+    best_t: f32,
+    before_best: f32,
+}
+
+/// An unfinished ray's sampled interval, with the closest point sphere tracing visited (the
+/// local sampler's min-SDF can fall back on it).
+struct Segment {
+    ray: usize,
+    t0: f32,
+    t1: f32,
+    samples: usize,
+    visited: Option<(f32, f32)>,
+}
+
+impl Segment {
+    fn at(&self, j: usize) -> f32 {
+        self.t0 + (self.t1 - self.t0) * j as f32 / (self.samples - 1).max(1) as f32
+    }
 }
 
 fn secant(tl: f32, fl: f32, th: f32, fh: f32) -> f32 {
@@ -533,6 +592,43 @@ mod tests {
         };
         assert!(a.hits() > 0 && a.hits() == b.hits());
         assert!(err(&b) < 0.2 * err(&a), "newton {} vs plain {}", err(&b), err(&a));
+    }
+
+    #[test]
+    fn local_sampler_agrees_with_idrs_for_a_fraction_of_the_evaluations() {
+        // A field that overestimates distance (slope 2.5) makes sphere tracing overshoot, and
+        // grazing rays run out of steps or leave the sphere: every branch of the sampler.
+        for slope in [1.0f32, 2.5] {
+            let f = move |p: &[f32]| Ok::<_, BackendError>(p.chunks_exact(3).map(|q| slope * ((q[0] * q[0] + q[1] * q[1] + q[2] * q[2]).sqrt() - 0.5)).collect());
+            let rays = rays_toward_origin(91);
+            let idr = TraceConfig::new(TraceMode::Refined);
+            let local = TraceConfig { local_samples: 16, sphere_steps: 20, ..idr.clone() };
+            let (a, b) = (trace(&f, &rays, &idr).unwrap(), trace(&f, &rays, &local).unwrap());
+            assert!(b.sampled.iter().any(|s| *s), "slope {slope}: the sampler ran");
+            for i in 0..rays.len() {
+                let y = rays.origins[i][1];
+                if (y.abs() - 0.5).abs() < 0.01 {
+                    continue; // silhouette: either is fine
+                }
+                assert_eq!(b.hit[i], y.abs() < 0.5, "slope {slope} y={y}");
+                assert_eq!(a.hit[i], b.hit[i], "slope {slope} y={y}");
+                if b.hit[i] {
+                    // Where sphere tracing lands on the far side (slope 2.5 can), so does IDR's.
+                    let z = (0.25 - y * y).sqrt();
+                    assert!((b.points[i][2] - a.points[i][2]).abs() < 2e-3, "slope {slope} y={y}: z {} vs IDR {}", b.points[i][2], a.points[i][2]);
+                    assert!(slope > 1.0 || (b.points[i][2] - z).abs() < 2e-3, "y={y}: z {} vs {z}", b.points[i][2]);
+                } else {
+                    // The min-SDF value is the closest approach's, at least as close as IDR's.
+                    let truth = slope * (y.abs() - 0.5);
+                    assert!((b.sdf[i] - truth).abs() < 0.01 * slope, "slope {slope} y={y}: {} vs {truth}", b.sdf[i]);
+                    assert!(b.sdf[i] <= a.sdf[i] + 5e-3 * slope, "slope {slope} y={y}: {} vs IDR {}", b.sdf[i], a.sdf[i]);
+                }
+            }
+            assert!(2 * b.evaluations < a.evaluations, "slope {slope}: {} vs IDR {} evaluations", b.evaluations, a.evaluations);
+        }
+        let mut bad = TraceConfig::new(TraceMode::Refined);
+        bad.local_samples = 1;
+        assert!(bad.validate().is_err());
     }
 
     #[test]

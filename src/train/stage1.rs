@@ -185,7 +185,14 @@ impl Stage1Config {
             train_pixels: views.iter().map(|v| v.camera.width * v.camera.height).sum(),
             held_out_views: held_out,
         };
-        let trace = TraceConfig::new(mode);
+        // The fast preset spends its sampler where sphere tracing says the answer is, and gives
+        // sphere tracing 20 steps so fewer rays fall back to sampling their whole segment.
+        // `bench train --variant fast-refined-hull --set trace=...` (cpu, 2000 iterations), IDR's
+        // sampler -> local 16 samples + 20 steps: field evaluations per step 69.5k -> 38.4k on the
+        // example (steps 1.35x faster side by side), Chamfer / NC example 0.164% / 0.984 ->
+        // 0.169% / 0.984, glossy 0.254% / 0.973 -> 0.261% / 0.973, bowl 1.425% / 0.925 ->
+        // 1.420% / 0.925. The paper preset keeps IDR's tracing.
+        let trace = TraceConfig { sphere_steps: 20, local_samples: 16, ..TraceConfig::new(mode) };
         // The fast preset; the paper preset changes the networks and their training below.
         let mut field = SdfFieldConfig::fast();
         field.encoding = FieldEncoding::hash_grid(grid_finest, grid_log2_table);
@@ -261,6 +268,7 @@ impl Stage1Config {
                 out_of_mask_min_sdf: true,
                 checkpoint_every: 50,
                 appearance_grid: false,
+                trace: TraceConfig::new(mode),
                 ..fast
             },
         }
