@@ -189,7 +189,7 @@ impl Stage1Config {
         // sphere tracing 20 steps so fewer rays fall back to sampling their whole segment.
         // `bench train --variant fast-refined-hull --set trace=...` (cpu, 2000 iterations), IDR's
         // sampler -> local 16 samples + 20 steps: field evaluations per step 69.5k -> 38.4k on the
-        // example (steps 1.35x faster side by side), Chamfer / NC example 0.164% / 0.984 ->
+        // example (steps 1.34x faster side by side, 0.127 -> 0.095 s), Chamfer / NC example 0.164% / 0.984 ->
         // 0.169% / 0.984, glossy 0.254% / 0.973 -> 0.261% / 0.973, bowl 1.425% / 0.925 ->
         // 1.420% / 0.925. The paper preset keeps IDR's tracing.
         let trace = TraceConfig { sphere_steps: 20, local_samples: 16, ..TraceConfig::new(mode) };
