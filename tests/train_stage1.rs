@@ -7,7 +7,7 @@ use pii_bake::backend::Backend;
 use pii_bake::nn::field::{FieldEncoding, SdfFieldConfig};
 use pii_bake::nn::mlp::Activation;
 use pii_bake::render::{trace, Rays, TraceMode};
-use pii_bake::train::stage1::{loss_and_grad, Batch, InitMode, LossSettings, Model, Preset, Stage1Config, Trainer};
+use pii_bake::train::stage1::{loss_and_grad, volume_loss_and_grad, volume_samples, Batch, InitMode, LossSettings, Model, Preset, Stage1Config, Trainer, VolumeSettings};
 
 fn tiny_config() -> Stage1Config {
     let mut cfg = Stage1Config::for_scene(Preset::Fast, TraceMode::Classic, InitMode::Sphere, &[], 0, 1);
@@ -70,6 +70,30 @@ fn pixel_settings() -> LossSettings {
 
 const EIK: [[f32; 3]; 4] = [[0.3, -0.2, 0.1], [-0.6, 0.5, 0.2], [0.0, 0.8, -0.3], [0.45, 0.1, -0.2]];
 
+/// Every 40th-or-so SDF and radiance parameter of `Model::new(cfg)`: the analytic gradients
+/// against central differences of `loss`.
+fn check_params_against_central_differences(cfg: &Stage1Config, d_sdf: &[f32], d_radiance: &[f32], loss: &dyn Fn(&Model) -> f64) {
+    let base = Model::new(cfg).unwrap();
+    for (which, analytic, len) in [("sdf", d_sdf, base.sdf_params.len()), ("radiance", d_radiance, base.radiance_params.len())] {
+        let mut checked = 0;
+        for idx in (0..len).step_by((len / 40).max(1)) {
+            let h = 2e-3f32;
+            let shifted = |h: f32| {
+                let mut m = Model::new(cfg).unwrap();
+                if which == "sdf" { m.sdf_params[idx] += h } else { m.radiance_params[idx] += h }
+                loss(&m)
+            };
+            let fd = (shifted(h) - shifted(-h)) / (2.0 * h as f64);
+            let a = analytic[idx] as f64;
+            // f32 rounding in the numerical normals puts ~4e-4 of noise on these differences.
+            let err = (a - fd).abs() / (1e-3 + 0.05 * fd.abs().max(a.abs()));
+            assert!(err <= 1.0, "{which} param {idx}: analytic {a:.6e} vs central difference {fd:.6e}");
+            checked += 1;
+        }
+        assert!(checked >= 20, "{which}: {checked} parameters checked");
+    }
+}
+
 #[test]
 fn whole_pixel_gradient_matches_central_differences() {
     let b = Backend::cpu();
@@ -81,35 +105,40 @@ fn whole_pixel_gradient_matches_central_differences() {
     assert_eq!(g.stats.mask_rays, 3);
     assert!(g.stats.rgb > 0.0 && g.stats.eikonal > 0.0 && g.stats.mask > 0.0, "{:?}", g.stats);
     let loss = |m: &Model| loss_and_grad(&b, m, &cfg.trace, &batch, &EIK, &pixel_settings(), 0.0).unwrap().stats.loss;
-    let check = |which: &str, analytic: &[f32], len: usize, set: &dyn Fn(&mut Model, usize, f32)| {
-        let mut worst = 0.0f64;
-        let mut checked = 0;
-        let step = (len / 40).max(1);
-        for idx in (0..len).step_by(step) {
-            let h = 2e-3f32;
-            let mut mp = Model::new(&cfg).unwrap();
-            set(&mut mp, idx, h);
-            let lp = loss(&mp);
-            let mut mm = Model::new(&cfg).unwrap();
-            set(&mut mm, idx, -h);
-            let lm = loss(&mm);
-            let fd = (lp - lm) / (2.0 * h as f64);
-            let a = analytic[idx] as f64;
-            // f32 rounding in the numerical normals puts ~4e-4 of noise on these differences.
-            let err = (a - fd).abs() / (1e-3 + 0.05 * fd.abs().max(a.abs()));
-            worst = worst.max(err);
-            assert!(err <= 1.0, "{which} param {idx}: analytic {a:.6e} vs central difference {fd:.6e}");
-            checked += 1;
-        }
-        assert!(checked >= 20, "{which}: {checked} parameters checked");
-        worst
-    };
-    let base = Model::new(&cfg).unwrap();
-    check("sdf", &g.d_sdf, base.sdf_params.len(), &|m, i, h| m.sdf_params[i] += h);
-    check("radiance", &g.d_radiance, base.radiance_params.len(), &|m, i, h| m.radiance_params[i] += h);
+    check_params_against_central_differences(&cfg, &g.d_sdf, &g.d_radiance, &loss);
     // The implicit surface point carries a real share of the sdf gradient: without the
     // point's movement (colour at a fixed x0) the sdf gradient would differ.
     assert!(g.d_sdf.iter().any(|v| v.abs() > 1e-4));
+}
+
+fn volume_settings(sharpness: f32) -> VolumeSettings {
+    VolumeSettings { sharpness, coarse: 24, fine: 12, mask_weight: 1.0, bound: 1.0 }
+}
+
+#[test]
+fn volume_rendered_pixel_gradient_matches_central_differences() {
+    // NeuS's compositing through the field (value, numerical normal, feature) and the radiance
+    // net, at samples held fixed (their placement is not differentiated).
+    let b = Backend::cpu();
+    let cfg = tiny_config();
+    let model = Model::new(&cfg).unwrap();
+    let batch = batch();
+    let ls = pixel_settings();
+    let vs = volume_settings(20.0);
+    let vsm = volume_samples(&b, &model, &batch, &vs, 0.3).unwrap();
+    assert_eq!(vsm.live.len(), 6);
+    assert_eq!(vsm.x.len(), 6 * 12);
+    let g = volume_loss_and_grad(&b, &model, &batch, &vsm, &EIK, &ls, &vs).unwrap();
+    assert_eq!(g.stats.surface_rays, 4, "{:?}", g.stats);
+    assert!(g.stats.rgb > 0.0 && g.stats.eikonal > 0.0 && g.stats.mask > 0.0, "{:?}", g.stats);
+    let loss = |m: &Model| volume_loss_and_grad(&b, m, &batch, &vsm, &EIK, &ls, &vs).unwrap().stats.loss;
+    check_params_against_central_differences(&cfg, &g.d_sdf, &g.d_radiance, &loss);
+    assert!(g.d_sdf.iter().any(|v| v.abs() > 1e-4));
+}
+
+#[test]
+fn volume_rendering_learns_a_silhouette() {
+    learn_a_silhouette_with(pii_bake::render::TraceConfig::new(TraceMode::Refined), true);
 }
 
 #[test]
@@ -192,6 +221,11 @@ fn a_few_steps_learn_a_silhouette() {
 }
 
 fn learn_a_silhouette(tracing: pii_bake::render::TraceConfig) {
+    learn_a_silhouette_with(tracing, false);
+}
+
+/// `volume`: the steps render by volume rendering (the silhouette is still scored by tracing).
+fn learn_a_silhouette_with(tracing: pii_bake::render::TraceConfig, volume: bool) {
     // A synthetic "scene": an orthographic-ish ring of cameras around a sphere of radius 0.35;
     // training from the 0.5 sphere init must shrink the mask error.
     let b = Backend::cpu();
@@ -229,13 +263,19 @@ fn learn_a_silhouette(tracing: pii_bake::render::TraceConfig) {
     for step in 0..25 {
         let bt = make_batch(&mut rng);
         let ls = LossSettings { alpha: 50.0, eikonal_weight: 0.1, mask_weight: 100.0, eikonal_points: 64, mask_samples: 16, near_surface_sigma: 0.02, smoothness_weight: 0.0, normal_gradient_scale: 1.0, colour_moves_point: true, surface_eikonal: true, out_of_mask_min_sdf: false };
-        let g = loss_and_grad(&b, &t.model, &t.cfg.trace, &bt, &EIK, &ls, 0.5).unwrap();
+        let g = if volume {
+            let vs = VolumeSettings { sharpness: 30.0, coarse: 32, fine: 16, mask_weight: 1.0, bound: 1.0 };
+            let vsm = volume_samples(&b, &t.model, &bt, &vs, 0.5).unwrap();
+            volume_loss_and_grad(&b, &t.model, &bt, &vsm, &EIK, &ls, &vs).unwrap()
+        } else {
+            loss_and_grad(&b, &t.model, &t.cfg.trace, &bt, &EIK, &ls, 0.5).unwrap()
+        };
         assert!(g.stats.loss.is_finite(), "step {step}: {:?}", g.stats);
         let (applied, _) = t.apply(g.d_sdf, g.d_radiance, 1e-2, 1e-2).unwrap();
         assert!(applied);
     }
     let wrong_after = eval(&t, &mut pii_bake::util::rng(99));
-    assert!(wrong_after * 2 < wrong_before, "{:?} sampler, silhouette errors: {wrong_before} before, {wrong_after} after 25 steps", t.cfg.trace.local_samples);
+    assert!(wrong_after * 2 < wrong_before, "{:?} sampler, volume {volume}, silhouette errors: {wrong_before} before, {wrong_after} after 25 steps", t.cfg.trace.local_samples);
     assert!(t.model.sdf_params.iter().all(|v| v.is_finite()));
 }
 

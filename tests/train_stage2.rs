@@ -161,6 +161,30 @@ fn constant_roughness_is_one_value_for_the_object() {
 }
 
 #[test]
+fn a_low_roughness_still_learns() {
+    // The roughness decoder's sigmoid near 0.01 everywhere (last layer: weights scaled by 0.01,
+    // bias logit(0.01); not exactly constant, which would sit on the smoothness L1's kink).
+    // Shading clamps roughness to [R_MIN, 1]; the decoder's output is mapped onto that range, so
+    // a low roughness is what shading uses, what the textures get, and it still has a gradient
+    // (a raw sigmoid below R_MIN sat in the clamp with none, and glossy scenes learnt roughness 0).
+    let b = Backend::cpu();
+    let mut m = Stage2Model::new(&tiny(IndirectMode::None, DecoderMode::Separate)).unwrap();
+    assert_eq!(m.decoders[1].0.out_dim(), 1, "the separate roughness decoder");
+    let p = &mut m.dec_params[1];
+    let n = p.len();
+    let last_in = *tiny(IndirectMode::None, DecoderMode::Separate).decoder_widths.last().unwrap();
+    p[n - 1 - last_in..n - 1].iter_mut().for_each(|w| *w *= 0.01);
+    p[n - 1] = (0.01f32 / 0.99).ln();
+    let (_, rough) = m.material(&b, &batch().x).unwrap();
+    let r_min = pii_bake::sg::shade::R_MIN as f32;
+    assert!(rough.iter().all(|&r| r > r_min && (r - (r_min + (1.0 - r_min) * 0.01)).abs() < 1e-3), "{rough:?}");
+    let g = grads(&b, &m);
+    // Through the clamp this was exactly 0 from shading.
+    assert!(g.d_dec[1][n - 1].abs() > 1e-9, "the roughness bias gets a gradient: {}", g.d_dec[1][n - 1]);
+    check_group("roughness decoder", &g.d_dec[1], n, &m, &|m, i, h| m.dec_params[1][i] += h);
+}
+
+#[test]
 fn idle_lobes_are_left_out_of_the_exported_environment() {
     let mut m = Stage2Model::new(&tiny(IndirectMode::Ours, DecoderMode::Separate)).unwrap();
     assert!(m.idle_lobes().is_empty());

@@ -30,6 +30,11 @@
 //! (`train::stage1`), which owns the parameters: with `x0` from here,
 //! `x(θ) = x0 − v·(f(x0;θ) − f(x0;θ0))/(∇f(x0)·v)`, so a loss's `∂L/∂x` reaches the parameters as
 //! `−(∂L/∂x · v)/(∇f·v)` times `∂f(x0)/∂θ`.
+//!
+//! [`volume`]: NeuS's volume rendering of the SDF (opacity compositing along samples), which
+//! stage 1 uses at the start of a run to open concavities a first hit cannot see into.
+
+pub mod volume;
 
 use crate::backend::BackendError;
 

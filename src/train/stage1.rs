@@ -161,6 +161,28 @@ pub struct Stage1Config {
     /// colour loss then trains inside the SDF's own hash entries: texture learnt as geometry).
     #[serde(default)]
     pub appearance_grid: bool,
+    /// This fraction of the run (from step 0) renders each ray by NeuS's volume rendering
+    /// ([`crate::render::volume`]) instead of at its first hit: colour and mask then reach every
+    /// sample along the ray, so a surface that hides a concavity (the visual hull's fill) can be
+    /// pushed back. 0 = surface rendering throughout (run files without the field).
+    #[serde(default)]
+    pub volume_fraction: f32,
+    /// Rays per volume-rendered step (0 = `rays`).
+    #[serde(default)]
+    pub volume_rays: usize,
+    /// Uniform samples per ray that place the importance samples (forward only).
+    #[serde(default = "default_volume_coarse")]
+    pub volume_coarse: usize,
+    /// Importance samples per ray that are rendered (value, gradient and radiance each).
+    #[serde(default = "default_volume_fine")]
+    pub volume_fine: usize,
+    /// The logistic sharpness `s` at the start and at the end of the volume phase (geometric in
+    /// between), in units of 1 / pixel footprint: `1/s` is the width the surface is spread over.
+    #[serde(default = "default_volume_sharpness")]
+    pub volume_sharpness: [f32; 2],
+    /// Weight of the BCE between the rendered opacity and the mask.
+    #[serde(default = "default_volume_mask_weight")]
+    pub volume_mask_weight: f32,
     pub seed: u64,
     pub checkpoint_every: u64,
     pub downscale: usize,
@@ -248,6 +270,12 @@ impl Stage1Config {
             // Chamfer 0.499% → 0.190%, NC 0.968 → 0.983, held-out 20.0 → 25.5 dB, mask IoU
             // 0.968 → 0.989 (the hull: 0.301% / 0.978).
             appearance_grid: true,
+            volume_fraction: 0.0,
+            volume_rays: 0,
+            volume_coarse: default_volume_coarse(),
+            volume_fine: default_volume_fine(),
+            volume_sharpness: default_volume_sharpness(),
+            volume_mask_weight: default_volume_mask_weight(),
             seed: 0,
             checkpoint_every: 100,
             downscale,
@@ -289,6 +317,15 @@ impl Stage1Config {
         if !(self.normal_gradient_scale.is_finite() && (0.0..=1.0).contains(&self.normal_gradient_scale)) {
             return bad("normal_gradient_scale must be in [0, 1]");
         }
+        if !((0.0..=1.0).contains(&self.volume_fraction)
+            && self.volume_coarse >= 2
+            && self.volume_fine >= 2
+            && self.volume_sharpness.iter().all(|s| s.is_finite() && *s > 0.0)
+            && self.volume_mask_weight.is_finite()
+            && self.volume_mask_weight >= 0.0)
+        {
+            return bad("volume rendering: volume_fraction in [0, 1], at least 2 coarse and 2 fine samples, sharpness > 0, mask weight >= 0");
+        }
         if self.hull_fit_points == 0 || !(self.hull_fit_lr.is_finite() && self.hull_fit_lr > 0.0) || !(self.hull_fit_lr_final > 0.0 && self.hull_fit_lr_final <= 1.0) {
             return bad("hull fit: points must be > 0, its learning rate > 0 and its final factor in (0, 1]");
         }
@@ -311,6 +348,17 @@ impl Stage1Config {
         let start = (self.coarse_levels.clamp(0.0, 1.0) * levels as f32).ceil().max(1.0);
         let n = (start + t * (levels as f32 - start)).floor() as usize;
         (n < levels).then_some(n)
+    }
+
+    /// Whether `step` is volume rendered, and the logistic sharpness `s` (normalised units) then.
+    pub fn volume_at(&self, step: u64) -> Option<f32> {
+        let end = self.volume_fraction * self.iterations as f32;
+        if (step as f32) >= end {
+            return None;
+        }
+        let t = step as f32 / end.max(1.0);
+        let [a, b] = self.volume_sharpness;
+        Some(a * (b / a).powf(t) / self.sizes.pixel_footprint.max(1e-6))
     }
 
     /// Learning-rate factor at `step` (exponential from 1 to `lr_final_factor`).
@@ -362,6 +410,18 @@ fn one() -> f32 {
 }
 fn yes() -> bool {
     true
+}
+fn default_volume_coarse() -> usize {
+    64
+}
+fn default_volume_fine() -> usize {
+    32
+}
+fn default_volume_sharpness() -> [f32; 2] {
+    [0.25, 2.0]
+}
+fn default_volume_mask_weight() -> f32 {
+    1.0
 }
 fn default_hull_fit_points() -> usize {
     2048
@@ -591,6 +651,48 @@ impl Model {
         input
     }
 
+    /// Backward of the radiance net run (`fwd`) at the points `x` (the first `x.len()` field
+    /// outputs) for the colour gradient `dc` `[n, 3]`: returns the gradient of the radiance
+    /// parameters (appearance grid, then MLP) and adds the normal (scaled by `normal_scale`) and
+    /// feature gradients to `g`.
+    fn radiance_backward(
+        &self,
+        backend: &Backend,
+        rad_params: &crate::backend::Tensor,
+        fwd: &crate::nn::mlp::MlpForward,
+        dc: Vec<f32>,
+        x: &[[f32; 3]],
+        normal_scale: f32,
+        g: &mut FieldOutputGrads,
+    ) -> Result<Vec<f32>, BackendError> {
+        let ns = x.len();
+        let fd = self.field.config.feature_dim;
+        let grads = backend.mlp_backward(&self.radiance, rad_params, fwd, &backend.from_vec(dc))?;
+        let din = backend.to_vec(&grads.d_input)?;
+        let id = self.radiance.in_dim();
+        let rfd = self.radiance_split_dims().0;
+        let vd = id - 6 - rfd;
+        let mut d_feat = vec![0f32; if self.appearance.is_some() { ns * rfd } else { 0 }];
+        for k in 0..ns {
+            let row = &din[k * id..(k + 1) * id];
+            if normal_scale != 0.0 {
+                for a in 0..3 {
+                    g.gradient[3 * k + a] += normal_scale * row[3 + vd + a];
+                }
+            }
+            match self.appearance {
+                Some(_) => d_feat[k * rfd..(k + 1) * rfd].copy_from_slice(&row[6 + vd..]),
+                None => g.feature[k * fd..(k + 1) * fd].copy_from_slice(&row[6 + vd..]),
+            }
+        }
+        let mut d = match &self.appearance {
+            Some(e) => e.backward_params(self.radiance_split().0, bytemuck::cast_slice(x), &d_feat),
+            None => Vec::new(),
+        };
+        d.extend(backend.to_vec(&grads.d_params)?);
+        Ok(d)
+    }
+
     /// Colour (sRGB, [0, 1]) at surface points seen along `dirs`: forward only.
     pub fn colour(&self, backend: &Backend, x: &[[f32; 3]], dirs: &[[f32; 3]]) -> Result<Vec<[f32; 3]>, BackendError> {
         if x.is_empty() {
@@ -776,30 +878,7 @@ pub fn loss_and_grad(
                         g.sdf[k] += -s_term / gdotv;
                     }
                 }
-                let grads = backend.mlp_backward(&model.radiance, &rad_params, &fwd, &backend.from_vec(dc))?;
-                let din = backend.to_vec(&grads.d_input)?;
-                let id = model.radiance.in_dim();
-                let rfd = model.radiance_split_dims().0;
-                let vd = id - 6 - rfd;
-                let mut d_feat = vec![0f32; if model.appearance.is_some() { ns * rfd } else { 0 }];
-                for k in 0..ns {
-                    let row = &din[k * id..(k + 1) * id];
-                    if ls.normal_gradient_scale != 0.0 {
-                        for a in 0..3 {
-                            g.gradient[3 * k + a] += ls.normal_gradient_scale * row[3 + vd + a];
-                        }
-                    }
-                    match model.appearance {
-                        Some(_) => d_feat[k * rfd..(k + 1) * rfd].copy_from_slice(&row[6 + vd..]),
-                        None => g.feature[k * fd..(k + 1) * fd].copy_from_slice(&row[6 + vd..]),
-                    }
-                }
-                let mut d = match &model.appearance {
-                    Some(e) => e.backward_params(model.radiance_split().0, bytemuck::cast_slice(&x0), &d_feat),
-                    None => Vec::new(),
-                };
-                d.extend(backend.to_vec(&grads.d_params)?);
-                Ok(d)
+                model.radiance_backward(backend, &rad_params, &fwd, dc, &x0, ls.normal_gradient_scale, &mut g)
             })();
             d_radiance = r;
         }
@@ -837,6 +916,167 @@ pub fn loss_and_grad(
         psnr: if mse > 0.0 { -10.0 * mse.log10() } else { f64::NAN },
         surface_rays: ns,
         mask_rays: nm,
+        alpha: ls.alpha,
+        field_evaluations: evals,
+        ..Default::default()
+    };
+    Ok(StepGrad { stats, d_sdf, d_radiance })
+}
+
+/// Volume rendering of one step ([`Stage1Config::volume_fraction`]).
+#[derive(Clone, Copy, Debug)]
+pub struct VolumeSettings {
+    /// Logistic sharpness `s` (normalised units).
+    pub sharpness: f32,
+    pub coarse: usize,
+    pub fine: usize,
+    pub mask_weight: f32,
+    pub bound: f32,
+}
+
+/// Share of the importance density spread uniformly along the ray (a surface the coarse samples
+/// missed can still appear).
+const VOLUME_FLOOR: f64 = 0.1;
+
+/// Where a volume-rendered batch is evaluated: the rays that meet the bounding sphere and
+/// `fine` samples along each (sorted), placed from the current field. Not differentiated: the
+/// loss is a function of the parameters at fixed samples.
+#[derive(Clone, Debug, Default)]
+pub struct VolumeSamples {
+    /// Batch indices of the rays that meet the bounding sphere.
+    pub live: Vec<usize>,
+    /// `[live.len() · fine]` points and their ray directions.
+    pub x: Vec<[f32; 3]>,
+    pub dirs: Vec<[f32; 3]>,
+    pub fine: usize,
+    /// Field evaluations spent placing them.
+    pub evaluations: usize,
+}
+
+/// Per ray, `coarse` stratified SDF samples over the bounding sphere's segment give NeuS weights
+/// at the current sharpness, and `fine` importance samples are drawn from them
+/// ([`crate::render::volume::importance_samples`], with [`VOLUME_FLOOR`] spread uniformly).
+pub fn volume_samples(backend: &Backend, model: &Model, batch: &Batch, vs: &VolumeSettings, jitter: f32) -> Result<VolumeSamples, BackendError> {
+    use crate::render::volume::{composite, importance_samples};
+    let nrays = batch.rays.len();
+    let spans: Vec<Option<(f32, f32)>> = (0..nrays).map(|i| sphere_interval(batch.rays.origins[i], batch.rays.dirs[i], vs.bound)).collect();
+    let live: Vec<usize> = (0..nrays).filter(|&i| spans[i].is_some_and(|(a, b)| b > a)).collect();
+    let nc = vs.coarse.max(2);
+    let mut coarse_t = Vec::with_capacity(live.len() * nc);
+    let mut coarse_p = Vec::with_capacity(3 * live.len() * nc);
+    for &i in &live {
+        let (a, b) = spans[i].unwrap_or_default();
+        for j in 0..nc {
+            let t = a + (b - a) * (j as f32 + jitter) / nc as f32;
+            coarse_t.push(t);
+            coarse_p.extend(batch.rays.at(i, t));
+        }
+    }
+    let coarse_f = model.sdf(backend, &coarse_p)?;
+    let nf = vs.fine.max(2);
+    let zeros = vec![[0.0f64; 3]; nc];
+    let mut x = Vec::with_capacity(live.len() * nf);
+    let mut dirs = Vec::with_capacity(live.len() * nf);
+    for (r, &i) in live.iter().enumerate() {
+        let f: Vec<f64> = coarse_f[r * nc..(r + 1) * nc].iter().map(|&v| v as f64).collect();
+        let w = composite(&f, &zeros, vs.sharpness as f64).weights;
+        for t in importance_samples(&coarse_t[r * nc..(r + 1) * nc], &w, nf, VOLUME_FLOOR, jitter) {
+            x.push(batch.rays.at(i, t));
+            dirs.push(batch.rays.dirs[i]);
+        }
+    }
+    Ok(VolumeSamples { live, x, dirs, fine: nf, evaluations: coarse_f.len() })
+}
+
+/// The loss and gradient of one batch rendered by volume rendering ([`crate::render::volume`])
+/// at the samples `vsm` ([`volume_samples`]): the field's value, numerical gradient and the
+/// radiance net run batched at every sample, and each ray's colour and opacity are composited.
+/// Losses: L1 between colour and photo on rays inside the mask, BCE between opacity and mask
+/// (`mask_weight`) on every ray, eikonal at the samples and at `eik_points`; all means over the
+/// batch's rays, as [`loss_and_grad`]. Rays that miss the bounding sphere render nothing and
+/// carry no gradient.
+pub fn volume_loss_and_grad(
+    backend: &Backend,
+    model: &Model,
+    batch: &Batch,
+    vsm: &VolumeSamples,
+    eik_points: &[[f32; 3]],
+    ls: &LossSettings,
+    vs: &VolumeSettings,
+) -> Result<StepGrad, BackendError> {
+    use crate::render::volume::{composite, composite_backward};
+    let nrays = batch.rays.len();
+    let s = vs.sharpness as f64;
+    let (live, x, dirs, nf) = (&vsm.live, &vsm.x, &vsm.dirs, vsm.fine);
+    let mut evals = vsm.evaluations;
+    let np = x.len();
+    let ne = eik_points.len();
+    let mut pts: Vec<f32> = Vec::with_capacity(3 * (np + ne));
+    pts.extend(x.iter().flatten());
+    pts.extend(eik_points.iter().flatten());
+    evals += 7 * (np + ne) + 7 * np;
+    let inv_b = 1.0 / nrays.max(1) as f64;
+    let mut parts = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0usize); // rgb, eik, mask, sq err, colour rays
+    let mut d_radiance: Result<Vec<f32>, BackendError> = Ok(Vec::new());
+    let rad_params = backend.upload(model.radiance_split().1);
+    let (_, d_sdf) = model.field.value_and_grad(backend, &model.sdf_params, &pts, |o: &FieldOutputs| {
+        let n = np + ne;
+        let fd = model.field.config.feature_dim;
+        let mut g = FieldOutputGrads { sdf: vec![0.0; n], gradient: vec![0.0; 3 * n], feature: vec![0.0; n * fd] };
+        if np > 0 {
+            let r = (|| {
+                let si = model.radiance_input(x, dirs, o, 0..np);
+                let fwd = backend.mlp_forward(&model.radiance, &rad_params, &backend.from_vec(si), true)?;
+                let c = backend.to_vec(&fwd.output)?;
+                let mut dc = vec![0f32; 3 * np];
+                for (r, &i) in live.iter().enumerate() {
+                    let range = r * nf..(r + 1) * nf;
+                    let f: Vec<f64> = o.sdf[range.clone()].iter().map(|&v| v as f64).collect();
+                    let col: Vec<[f64; 3]> = range.clone().map(|k| [0, 1, 2].map(|ch| c[3 * k + ch] as f64)).collect();
+                    let fwd_r = composite(&f, &col, s);
+                    let m = batch.mask[i].clamp(0.0, 1.0) as f64;
+                    let mut d_colour = [0.0; 3];
+                    if m >= 0.5 {
+                        parts.4 += 1;
+                        for ch in 0..3 {
+                            let e = fwd_r.colour[ch] - batch.rgb[i][ch] as f64;
+                            parts.0 += e.abs() * inv_b;
+                            parts.3 += e * e;
+                            d_colour[ch] = e.signum() * inv_b;
+                        }
+                    }
+                    let op = fwd_r.opacity.clamp(1e-4, 1.0 - 1e-4);
+                    let w = vs.mask_weight as f64 * inv_b;
+                    parts.2 += -w * (m * op.ln() + (1.0 - m) * (1.0 - op).ln());
+                    let inside = fwd_r.opacity > 1e-4 && fwd_r.opacity < 1.0 - 1e-4;
+                    let d_opacity = if inside { w * (op - m) / (op * (1.0 - op)) } else { 0.0 };
+                    let (d_f, d_c) = composite_backward(&f, &col, s, &fwd_r, d_colour, d_opacity);
+                    for (j, k) in range.enumerate() {
+                        g.sdf[k] += d_f[j] as f32;
+                        for ch in 0..3 {
+                            dc[3 * k + ch] = d_c[j][ch] as f32;
+                        }
+                    }
+                }
+                model.radiance_backward(backend, &rad_params, &fwd, dc, x, ls.normal_gradient_scale, &mut g)
+            })();
+            d_radiance = r;
+        }
+        let eik_idx: Vec<usize> = (0..n).collect();
+        parts.1 += eikonal(&o.gradient, &eik_idx, ls.eikonal_weight, &mut g.gradient);
+        (parts.0 + parts.1 + parts.2, g)
+    })?;
+    let d_radiance = d_radiance?;
+    let d_radiance = if d_radiance.is_empty() { vec![0.0; model.radiance_params.len()] } else { d_radiance };
+    let mse = if parts.4 > 0 { parts.3 / (3 * parts.4) as f64 } else { f64::NAN };
+    let stats = StepStats {
+        loss: parts.0 + parts.1 + parts.2,
+        rgb: parts.0,
+        eikonal: parts.1,
+        mask: parts.2,
+        psnr: if mse > 0.0 { -10.0 * mse.log10() } else { f64::NAN },
+        surface_rays: parts.4,
+        mask_rays: nrays - parts.4,
         alpha: ls.alpha,
         field_evaluations: evals,
         ..Default::default()
@@ -935,7 +1175,12 @@ impl Trainer {
         let levels = self.cfg.active_levels_at(self.step);
         self.model.field.encoder.set_active_levels(levels);
         let mut rng = self.step_rng(self.step);
-        let batch = data.sample(&mut rng, self.cfg.rays, self.cfg.foreground_fraction);
+        let volume = self.cfg.volume_at(self.step);
+        let nrays = match (volume, self.cfg.volume_rays) {
+            (Some(_), n) if n > 0 => n,
+            _ => self.cfg.rays,
+        };
+        let batch = data.sample(&mut rng, nrays, self.cfg.foreground_fraction);
         let b = self.cfg.trace.bound;
         let eik: Vec<[f32; 3]> = (0..self.cfg.eikonal_points)
             .map(|_| [rng.random_range(-b..b), rng.random_range(-b..b), rng.random_range(-b..b)])
@@ -954,7 +1199,20 @@ impl Trainer {
             out_of_mask_min_sdf: self.cfg.out_of_mask_min_sdf,
         };
         let jitter = rng.random_range(0.0f32..1.0);
-        let g = loss_and_grad(backend, &self.model, &self.cfg.trace, &batch, &eik, &ls, jitter)?;
+        let g = match volume {
+            None => loss_and_grad(backend, &self.model, &self.cfg.trace, &batch, &eik, &ls, jitter)?,
+            Some(sharpness) => {
+                let vs = VolumeSettings {
+                    sharpness,
+                    coarse: self.cfg.volume_coarse,
+                    fine: self.cfg.volume_fine,
+                    mask_weight: self.cfg.volume_mask_weight,
+                    bound: b,
+                };
+                let vsm = volume_samples(backend, &self.model, &batch, &vs, jitter)?;
+                volume_loss_and_grad(backend, &self.model, &batch, &vsm, &eik, &ls, &vs)?
+            }
+        };
         let f = self.cfg.lr_factor(self.step);
         let warm = (self.step as f32) < self.cfg.radiance_warmup * self.cfg.iterations as f32;
         let (lf, lr) = (if warm { 0.0 } else { self.cfg.lr_field * f }, self.cfg.lr_radiance * f);

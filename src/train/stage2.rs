@@ -6,7 +6,8 @@
 //!   amplitudes scaled so the total energy `Σ μ·2π/λ·(1 − e^{−2λ})` is `0.8·2π` (the paper's);
 //! - **material autoencoder**: `PE10(x) → widths (LeakyReLU 0.2) → latent z` and decoders
 //!   `z → albedo (3), roughness (1)`, sigmoid outputs: two decoders (`separate`, synthetic data) or
-//!   one that shares its layers (`shared`, real captures). Latent smoothness: L1 between the
+//!   one that shares its layers (`shared`, real captures); roughness is the sigmoid mapped onto
+//!   shading's range `[R_MIN, 1]` ([`roughness_from_decoder`]). Latent smoothness: L1 between the
 //!   material decoded from `z` and from `z + N(0, σ²)`; KL sparsity of `mean σ(z)` toward ρ;
 //! - **indirect light** (`--indirect ours`): from each surface point x a ray toward every lobe
 //!   axis ξ_k above its horizon is traced (the stage-1 SDF, 10 sphere-tracing steps from
@@ -44,7 +45,7 @@ use crate::nn::mlp::{Activation, Init, Mlp, MlpConfig};
 use crate::nn::params::ParamStore;
 use crate::render::{trace, trace_secondary, Rays, TraceConfig};
 use crate::sg::env::{EnvSgs, SgLobe};
-use crate::sg::shade::{lobe_contribution, normalize, sg_eval, Dual, Sg, Surface, LAMBDA_MIN};
+use crate::sg::shade::{lobe_contribution, normalize, sg_eval, Dual, Sg, Surface, LAMBDA_MIN, R_MIN};
 use crate::util::DataError;
 
 /// How light blocked by the object itself is modelled.
@@ -93,6 +94,17 @@ pub enum DecoderMode {
     Separate,
     /// One decoder with both outputs (real captures: roughness cannot saturate alone).
     Shared,
+}
+
+/// `1 − R_MIN`: the roughness decoder's sigmoid spans `[R_MIN, 1]`.
+const ROUGHNESS_SPAN: f32 = (1.0 - R_MIN) as f32;
+
+/// Roughness from the roughness decoder's sigmoid output `y`: `R_MIN + (1 − R_MIN)·y`. Shading
+/// clamps roughness to `[R_MIN, 1]` (`sg::shade`); a raw sigmoid below `R_MIN` sat in that clamp
+/// with zero gradient and never left it (glossy scene: every point's roughness was learnt as
+/// 0 against ground truth 0.05–0.15), and the textures exported what shading never used.
+pub fn roughness_from_decoder(y: f32) -> f32 {
+    R_MIN as f32 + ROUGHNESS_SPAN * y
 }
 
 /// Where roughness comes from.
@@ -565,7 +577,8 @@ impl Stage2Model {
         self.mat_enc.forward(self.enc_split().0, bytemuck::cast_slice(x))
     }
 
-    /// The decoder that writes roughness and the column it writes it to.
+    /// The decoder that writes roughness and the column it writes it to. The decoder's sigmoid
+    /// output `y` is the roughness `R_MIN + (1 − R_MIN)·y` ([`roughness_from_decoder`]).
     fn roughness_decoder(&self) -> (usize, usize) {
         let i = self.decoders.iter().position(|(m, o)| (*o..*o + m.out_dim()).contains(&3)).unwrap_or(0);
         (i, 3 - self.decoders[i].1)
@@ -581,7 +594,7 @@ impl Stage2Model {
         let (i, col) = self.roughness_decoder();
         let (m, _) = &self.decoders[i];
         let f = backend.mlp_forward(m, &backend.upload(&self.dec_params[i]), &backend.from_vec(vec![CONSTANT_LATENT; self.cfg.latent_dim]), train)?;
-        let r = backend.to_vec(&f.output)?[col];
+        let r = roughness_from_decoder(backend.to_vec(&f.output)?[col]);
         Ok(Some((r, f)))
     }
 
@@ -603,7 +616,7 @@ impl Stage2Model {
             }
             for m in mat.chunks_exact(4) {
                 albedo.push([m[0], m[1], m[2]]);
-                rough.push(constant.unwrap_or(m[3]));
+                rough.push(constant.unwrap_or(roughness_from_decoder(m[3])));
             }
         }
         Ok((albedo, rough))
@@ -992,6 +1005,10 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
         }
         dec_fwd.push((pt, f0, f1));
     }
+    for i in 0..b {
+        mat[4 * i + 3] = roughness_from_decoder(mat[4 * i + 3]);
+        matp[4 * i + 3] = roughness_from_decoder(matp[4 * i + 3]);
+    }
     let constant = model.constant_roughness(backend, true)?;
     if let Some((r, _)) = &constant {
         for i in 0..b {
@@ -1217,10 +1234,15 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
             d_mat[4 * i + 3] = 0.0;
             d_matp[4 * i + 3] = 0.0;
         }
-        sum as f32
+        sum as f32 * ROUGHNESS_SPAN
     } else {
         0.0
     };
+    // Through the roughness remap to the decoders' sigmoid outputs.
+    for i in 0..b {
+        d_mat[4 * i + 3] *= ROUGHNESS_SPAN;
+        d_matp[4 * i + 3] *= ROUGHNESS_SPAN;
+    }
     // Decoders backward on both paths; latent gradients sum.
     let mut dz = vec![0.0f32; b * ld];
     let mut d_dec = Vec::with_capacity(model.decoders.len());
