@@ -1014,7 +1014,7 @@ pub fn volume_loss_and_grad(
     let mut pts: Vec<f32> = Vec::with_capacity(3 * (np + ne));
     pts.extend(x.iter().flatten());
     pts.extend(eik_points.iter().flatten());
-    evals += 7 * (np + ne) + 7 * np;
+    evals += 7 * (np + ne);
     let inv_b = 1.0 / nrays.max(1) as f64;
     let mut parts = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0usize); // rgb, eik, mask, sq err, colour rays
     let mut d_radiance: Result<Vec<f32>, BackendError> = Ok(Vec::new());
