@@ -70,27 +70,32 @@ fn pixel_settings() -> LossSettings {
 
 const EIK: [[f32; 3]; 4] = [[0.3, -0.2, 0.1], [-0.6, 0.5, 0.2], [0.0, 0.8, -0.3], [0.45, 0.1, -0.2]];
 
+/// The analytic gradient `analytic` of the `which` parameters ("sdf" or "radiance") of
+/// `Model::new(cfg)` at the indices `idx` against central differences of `loss`.
+fn assert_matches_central_differences(cfg: &Stage1Config, which: &str, analytic: &[f32], idx: &[usize], loss: &dyn Fn(&Model) -> f64) {
+    for &i in idx {
+        let h = 2e-3f32;
+        let shifted = |h: f32| {
+            let mut m = Model::new(cfg).unwrap();
+            if which == "sdf" { m.sdf_params[i] += h } else { m.radiance_params[i] += h }
+            loss(&m)
+        };
+        let fd = (shifted(h) - shifted(-h)) / (2.0 * h as f64);
+        let a = analytic[i] as f64;
+        // f32 rounding in the numerical normals puts ~4e-4 of noise on these differences.
+        let err = (a - fd).abs() / (1e-3 + 0.05 * fd.abs().max(a.abs()));
+        assert!(err <= 1.0, "{which} param {i}: analytic {a:.6e} vs central difference {fd:.6e}");
+    }
+}
+
 /// Every 40th-or-so SDF and radiance parameter of `Model::new(cfg)`: the analytic gradients
 /// against central differences of `loss`.
 fn check_params_against_central_differences(cfg: &Stage1Config, d_sdf: &[f32], d_radiance: &[f32], loss: &dyn Fn(&Model) -> f64) {
     let base = Model::new(cfg).unwrap();
     for (which, analytic, len) in [("sdf", d_sdf, base.sdf_params.len()), ("radiance", d_radiance, base.radiance_params.len())] {
-        let mut checked = 0;
-        for idx in (0..len).step_by((len / 40).max(1)) {
-            let h = 2e-3f32;
-            let shifted = |h: f32| {
-                let mut m = Model::new(cfg).unwrap();
-                if which == "sdf" { m.sdf_params[idx] += h } else { m.radiance_params[idx] += h }
-                loss(&m)
-            };
-            let fd = (shifted(h) - shifted(-h)) / (2.0 * h as f64);
-            let a = analytic[idx] as f64;
-            // f32 rounding in the numerical normals puts ~4e-4 of noise on these differences.
-            let err = (a - fd).abs() / (1e-3 + 0.05 * fd.abs().max(a.abs()));
-            assert!(err <= 1.0, "{which} param {idx}: analytic {a:.6e} vs central difference {fd:.6e}");
-            checked += 1;
-        }
-        assert!(checked >= 20, "{which}: {checked} parameters checked");
+        let idx: Vec<usize> = (0..len).step_by((len / 40).max(1)).collect();
+        assert!(idx.len() >= 20, "{which}: {} parameters checked", idx.len());
+        assert_matches_central_differences(cfg, which, analytic, &idx, loss);
     }
 }
 
@@ -421,25 +426,13 @@ fn appearance_grid_gradient_matches_central_differences() {
     assert_eq!(g.stats.surface_rays, 3, "{:?}", g.stats);
     assert_eq!(g.d_radiance.len(), model.radiance_params.len());
     let loss = |m: &Model| loss_and_grad(&b, m, &cfg.trace, &batch, &EIK, &pixel_settings(), 0.0).unwrap().stats.loss;
-    let check = |which: &str, analytic: &[f32], idx: &[usize], set: &dyn Fn(&mut Model, usize, f32)| {
-        for &i in idx {
-            let h = 2e-3f32;
-            let (mut mp, mut mm) = (Model::new(&cfg).unwrap(), Model::new(&cfg).unwrap());
-            set(&mut mp, i, h);
-            set(&mut mm, i, -h);
-            let fd = (loss(&mp) - loss(&mm)) / (2.0 * h as f64);
-            let a = analytic[i] as f64;
-            let err = (a - fd).abs() / (1e-3 + 0.05 * fd.abs().max(a.abs()));
-            assert!(err <= 1.0, "{which} param {i}: analytic {a:.6e} vs central difference {fd:.6e}");
-        }
-    };
     // Grid entries the three surface points touch (and a few they do not), then the MLP and SDF.
     let touched: Vec<usize> = (0..grid).filter(|&i| g.d_radiance[i].abs() > 1e-6).collect();
     assert!(touched.len() >= 50, "{} grid entries touched", touched.len());
     let mut idx: Vec<usize> = touched.iter().step_by((touched.len() / 30).max(1)).copied().collect();
     idx.extend([0, grid / 2, grid - 1].iter().filter(|i| !touched.contains(i)));
     idx.extend((grid..model.radiance_params.len()).step_by(((model.radiance_params.len() - grid) / 20).max(1)));
-    check("radiance", &g.d_radiance, &idx, &|m, i, h| m.radiance_params[i] += h);
+    assert_matches_central_differences(&cfg, "radiance", &g.d_radiance, &idx, &loss);
     let sdf_idx: Vec<usize> = (0..model.sdf_params.len()).step_by((model.sdf_params.len() / 30).max(1)).collect();
-    check("sdf", &g.d_sdf, &sdf_idx, &|m, i, h| m.sdf_params[i] += h);
+    assert_matches_central_differences(&cfg, "sdf", &g.d_sdf, &sdf_idx, &loss);
 }

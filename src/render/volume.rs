@@ -131,6 +131,7 @@ pub fn importance_samples(t: &[f32], weights: &[f64], count: usize, floor: f64, 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testing::{check_grad, Tolerance};
 
     fn loss(f: &[f64], c: &[[f64; 3]], s: f64, dc: [f64; 3], d_o: f64) -> f64 {
         let r = composite(f, c, s);
@@ -165,21 +166,13 @@ mod tests {
         for s in [5.0, 30.0, 120.0] {
             let fwd = composite(&f, &c, s);
             let (df, dcol) = composite_backward(&f, &c, s, &fwd, dc, d_o);
-            let h = 1e-6;
-            for i in 0..f.len() {
-                let (mut a, mut b) = (f.clone(), f.clone());
-                a[i] += h;
-                b[i] -= h;
-                let num = (loss(&a, &c, s, dc, d_o) - loss(&b, &c, s, dc, d_o)) / (2.0 * h);
-                assert!((num - df[i]).abs() < 1e-5 * (1.0 + num.abs()), "s {s} f[{i}]: {num} vs {}", df[i]);
-                for ch in 0..3 {
-                    let (mut a, mut b) = (c.clone(), c.clone());
-                    a[i][ch] += h;
-                    b[i][ch] -= h;
-                    let num = (loss(&f, &a, s, dc, d_o) - loss(&f, &b, s, dc, d_o)) / (2.0 * h);
-                    assert!((num - dcol[i][ch]).abs() < 1e-6, "s {s} c[{i}][{ch}]: {num} vs {}", dcol[i][ch]);
-                }
-            }
+            check_grad(&format!("d/df at s {s}"), &f, &df, 1e-6, Tolerance::new(1e-5, 1e-5), |x| loss(x, &c, s, dc, d_o));
+            let flat: Vec<f64> = c.iter().flatten().copied().collect();
+            let d_flat: Vec<f64> = dcol.iter().flatten().copied().collect();
+            check_grad(&format!("d/dc at s {s}"), &flat, &d_flat, 1e-6, Tolerance::new(0.0, 1e-6), |x| {
+                let cols: Vec<[f64; 3]> = x.chunks_exact(3).map(|v| [v[0], v[1], v[2]]).collect();
+                loss(&f, &cols, s, dc, d_o)
+            });
         }
     }
 
