@@ -217,3 +217,37 @@ fn geometry_set_reaches_the_run_config_and_bad_settings_are_refused() {
         assert!(text(&o).contains(says), "{set}: {}", text(&o));
     }
 }
+
+#[test]
+fn init_mesh_fits_a_given_mesh_and_refuses_one_from_another_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let gt = example().join("gt").join("mesh.obj");
+    let run = dir.path().join("r");
+    let o = train(&run, &["--iterations", "2", "--init-mesh", gt.to_str().unwrap(), "--init-steps", "40", "--geometry-set", "lr_field=0"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("train_report.json")).unwrap()).unwrap();
+    let mi = &report["mesh_init"];
+    assert_eq!(mi["triangles"].as_u64(), Some(5856), "{mi}");
+    assert!(mi["voxels_inside"].as_u64().unwrap() > 1000, "{mi}");
+    assert!(mi["fit_loss"].as_f64().unwrap() < 0.05, "{mi}");
+    assert!(report["hull_init"].is_null());
+    // lr_field 0 is "keep the geometry": accepted; a negative rate is not.
+    let o = train(&dir.path().join("neg"), &["--iterations", "2", "--geometry-set", "lr_field=-1"]);
+    assert!(!o.status.success() && text(&o).contains("learning rates"), "{}", text(&o));
+    // The same mesh in centimetres is not in the scene's frame: refused, naming the file.
+    let obj = std::fs::read_to_string(&gt).unwrap();
+    let scaled: String = obj
+        .lines()
+        .map(|l| match l.strip_prefix("v ") {
+            Some(v) => format!("v {}\n", v.split_whitespace().map(|x| (x.parse::<f64>().unwrap() * 100.0).to_string()).collect::<Vec<_>>().join(" ")),
+            None => format!("{l}\n"),
+        })
+        .collect();
+    let cm = dir.path().join("centimetres.obj");
+    std::fs::write(&cm, scaled).unwrap();
+    let o = train(&dir.path().join("cm"), &["--iterations", "2", "--init-mesh", cm.to_str().unwrap()]);
+    assert!(!o.status.success(), "a mesh 100x too large was accepted");
+    assert!(text(&o).contains("centimetres.obj") && text(&o).contains("not in the scene's frame"), "{}", text(&o));
+    let o = train(&dir.path().join("missing"), &["--iterations", "2", "--init-mesh", dir.path().join("nope.obj").to_str().unwrap()]);
+    assert!(!o.status.success() && text(&o).contains("nope.obj"), "{}", text(&o));
+}

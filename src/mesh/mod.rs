@@ -135,8 +135,10 @@ pub struct MeshConfig {
     /// Grid nodes along the longest side of the field's box.
     pub resolution: usize,
     /// Simplification error bound in scene units; `None` derives it from the grid spacing
-    /// (half a cell).
+    /// (`bound_cells` cells).
     pub error_bound: Option<f32>,
+    /// The error bound in grid cells when `error_bound` is `None`.
+    pub bound_cells: f32,
     /// Largest angle (degrees) allowed between the interpolated vertex normals and the SDF
     /// gradient inside triangles: keeps flat faces next to rounded edges from shading bent.
     pub normal_tolerance_deg: f32,
@@ -147,6 +149,7 @@ impl Default for MeshConfig {
         Self {
             resolution: 256,
             error_bound: None,
+            bound_cells: 0.5,
             normal_tolerance_deg: 10.0,
         }
     }
@@ -1362,7 +1365,7 @@ pub fn build_mesh(
     stats.seconds_cleanup = t.elapsed().as_secs_f64();
 
     let t = Instant::now();
-    let bound = cfg.error_bound.unwrap_or(0.5 * grid.spacing);
+    let bound = cfg.error_bound.unwrap_or(cfg.bound_cells * grid.spacing);
     if !(bound.is_finite() && bound > 0.0) {
         return Err(MeshError::Config(format!(
             "simplification error bound must be > 0, got {bound}"

@@ -59,6 +59,14 @@ pub struct BenchTrainArgs {
     /// Override any stage-1 setting by its name in run.json's config, e.g. `--set mask_weight=10`.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub overrides: Vec<String>,
+    /// After training, also mesh the SDF as `export` ships it (the scene's mesh resolution, closed,
+    /// simplified) with these simplification error bounds in grid cells, and measure each
+    /// (default: export's own bound only).
+    #[arg(long, num_args = 1..)]
+    pub asset_bound_cells: Vec<f32>,
+    /// The grid resolutions for those asset meshes (default: the scene's, as `export` uses).
+    #[arg(long, num_args = 1..)]
+    pub asset_resolution: Vec<usize>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -121,6 +129,27 @@ fn measure(backend: &Backend, f: &(dyn Fn(&[f32]) -> Result<Vec<f32>, crate::bac
     };
     let m = crate::eval::mesh::compare_meshes(&pred, gt, 20_000, 1);
     (m.chamfer / gt_size, m.normal_consistency)
+}
+
+/// The shipped mesh (`export`'s pipeline: grid, largest component, closed, simplified within the
+/// error bound) of a trained model, measured against `gt` (normalised frame): Chamfer relative to
+/// the GT's size, normal consistency (of the triangles, as a renderer without vertex normals sees
+/// them), triangle count and the bound used.
+fn measure_asset(backend: &Backend, model: &super::stage1::Model, mesh_cfg: &crate::mesh::MeshConfig, gt: &crate::eval::mesh::Mesh, gt_size: f64) -> anyhow::Result<serde_json::Value> {
+    let t = Instant::now();
+    let sdf = super::cli::TrainedSdf::new(backend, model, glam::DMat3::IDENTITY)?;
+    let res = crate::mesh::build_mesh(backend, &sdf, mesh_cfg)?;
+    let pred = crate::eval::mesh::Mesh {
+        positions: res.mesh.positions.iter().map(|p| DVec3::from(p.map(f64::from))).collect(),
+        triangles: res.mesh.indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect(),
+    };
+    let m = crate::eval::mesh::compare_meshes(&pred, gt, 20_000, 1);
+    Ok(serde_json::json!({
+        "resolution": mesh_cfg.resolution, "bound_cells": mesh_cfg.bound_cells, "error_bound": res.stats.error_bound,
+        "error_bound_rel": res.stats.error_bound as f64 / gt_size, "measured_deviation": res.stats.measured_deviation,
+        "triangles": res.stats.triangles, "chamfer_rel": m.chamfer / gt_size, "normal_consistency": m.normal_consistency,
+        "seconds": t.elapsed().as_secs_f64(),
+    }))
 }
 
 fn parse_variant(s: &str) -> anyhow::Result<(Preset, TraceMode, InitMode)> {
@@ -252,12 +281,27 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
             }
             let held_views: Vec<&View> = if held.is_empty() { views.iter().take(4).copied().collect() } else { held.iter().take(8).copied().collect() };
             let ev = evaluate_views(&backend, &tr.model, &cfg.trace, &held_views, 128 * 128)?;
+            let shipped = super::cli::trained_mesh_config(&cfg.sizes, None, None);
+            let cells = if args.asset_bound_cells.is_empty() { vec![shipped.bound_cells] } else { args.asset_bound_cells.clone() };
+            let resolutions = if args.asset_resolution.is_empty() { vec![shipped.resolution] } else { args.asset_resolution.clone() };
+            let mut assets = Vec::new();
+            for &r in &resolutions {
+                for &c in &cells {
+                    let a = measure_asset(&backend, &tr.model, &crate::mesh::MeshConfig { resolution: r, bound_cells: c, ..shipped.clone() }, &gt, gt_size)?;
+                    ctx.say(format!(
+                        "{sname} {name}: asset mesh {r}^3, bound {c} cells: {} triangles, Chamfer {:.3}%, NC {:.4}",
+                        a["triangles"], 100.0 * a["chamfer_rel"].as_f64().unwrap_or(f64::NAN), a["normal_consistency"].as_f64().unwrap_or(f64::NAN)
+                    ));
+                    assets.push(a);
+                }
+            }
             summary.push(serde_json::json!({
                 "scene": sname, "variant": name, "backend": backend.describe(),
                 "iterations": tr.step, "it_per_s": steps as f64 / train_secs.max(1e-9), "wall_seconds": wall,
                 "field_evaluations_per_step": evals as f64 / steps.max(1) as f64,
                 "chamfer_rel": last.0, "normal_consistency": last.1, "hull_chamfer_rel": hc, "hull_normal_consistency": hn,
                 "seconds_to_half_hull_chamfer": reached, "held_out_psnr": ev.psnr, "mask_iou": ev.mask_iou, "skipped_steps": tr.skipped,
+                "asset": assets,
             }));
         }
     }

@@ -62,6 +62,11 @@ pub struct TrainOptions {
     /// Steps of the hull init's fit (default: the preset's).
     #[arg(long)]
     pub init_steps: Option<u64>,
+    /// Fit the SDF to this mesh (.obj/.ply, in the scene's frame: a scan or a ground-truth mesh)
+    /// instead of the visual hull; add `--geometry-set lr_field=0` to keep that geometry exactly
+    /// and train only the appearance (materials for an existing mesh, or stage 2 on known geometry).
+    #[arg(long, value_name = "MESH")]
+    pub init_mesh: Option<PathBuf>,
     /// Stage-1 setting overrides for a new run, KEY=VALUE (any field of run.json's config, e.g.
     /// `--geometry-set normal_gradient_scale=0.3`), repeatable.
     #[arg(long = "geometry-set", value_name = "KEY=VALUE")]
@@ -328,6 +333,7 @@ pub fn train_stage1(
     let mut curve: Vec<String> = Vec::new();
     let mut seconds_init = 0.0;
     let mut hull_report = serde_json::Value::Null;
+    let mut mesh_report = serde_json::Value::Null;
     let resuming = resume && run_dir.join(CHECKPOINT).is_file();
     let mut trainer = if resuming {
         let (mut t, _) = Trainer::load(run_dir, Some(&key))?;
@@ -349,7 +355,36 @@ pub fn train_stage1(
             ctx.say(format!("no checkpoint in {}: starting a new run", run_dir.display()));
         }
         let mut t = Trainer::new(cfg.clone())?;
-        if cfg.init == InitMode::Hull {
+        if let Some(mesh_path) = &opts.init_mesh {
+            let ti = Instant::now();
+            let mut mesh = crate::eval::mesh::Mesh::read(mesh_path)?;
+            if mesh.triangles.is_empty() {
+                return Err(DataError::new(mesh_path, "the mesh has no triangles").into());
+            }
+            for p in &mut mesh.positions {
+                *p = scene.normalisation.to_normalised(*p);
+            }
+            let outside = mesh.positions.iter().filter(|p| p.abs().max_element() > cfg.trace.bound as f64).count();
+            if outside * 10 > mesh.positions.len() {
+                return Err(DataError::new(
+                    mesh_path,
+                    format!("{outside} of {} vertices lie outside the scene's bounding cube: the mesh is not in the scene's frame (or not this scene's)", mesh.positions.len()),
+                )
+                .into());
+            }
+            let res = cfg.sizes.mesh_resolution.clamp(96, 192);
+            let grid = super::hull::mesh_signed_distance(&mesh, res, cfg.trace.bound);
+            let inside = grid.data.iter().filter(|d| **d < 0.0).count();
+            if inside == 0 {
+                return Err(DataError::new(mesh_path, "no grid voxel lies inside the mesh (is it closed?)").into());
+            }
+            let pb = ctx.progress(cfg.hull_fit_steps, "mesh init");
+            let err = t.fit_to_grid(backend, &grid, cfg.hull_fit_steps, |s, _| pb.set_position(s + 1))?;
+            pb.finish_and_clear();
+            seconds_init = ti.elapsed().as_secs_f64();
+            mesh_report = serde_json::json!({ "mesh": mesh_path.display().to_string(), "triangles": mesh.triangles.len(), "resolution": res, "voxels_inside": inside, "fit_steps": cfg.hull_fit_steps, "fit_loss": err, "seconds": seconds_init });
+            ctx.say(format!("mesh init: {} ({} triangles) as a {res}^3 signed distance, {} fit steps, loss {err:.5} [{seconds_init:.1} s]", mesh_path.display(), mesh.triangles.len(), cfg.hull_fit_steps));
+        } else if cfg.init == InitMode::Hull {
             let ti = Instant::now();
             if views.iter().any(|v| v.mask.is_none()) {
                 anyhow::bail!("the hull init needs masks");
@@ -380,7 +415,7 @@ pub fn train_stage1(
         "stage 1 ({} preset, {} tracing, {} init) on {}: {} views, {} pixels, {} rays x {} iterations; sizes from the scene: pixel footprint {:.4}, hash grid finest {} (2^{} table), mesh {} nodes",
         cfg.preset.name(),
         cfg.trace.mode.name(),
-        match cfg.init { InitMode::Hull => "hull", InitMode::Sphere => "sphere" },
+        if opts.init_mesh.is_some() && !resuming { "mesh" } else { match cfg.init { InitMode::Hull => "hull", InitMode::Sphere => "sphere" } },
         scene_path.display(),
         views.len(),
         data.pixels(),
@@ -452,6 +487,7 @@ pub fn train_stage1(
         "last": last,
         "it_per_s": its,
         "hull_init": hull_report,
+        "mesh_init": mesh_report,
         "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr_pixels": HELD_OUT_PSNR_PIXELS, "psnr": ev.psnr, "mask_iou": ev.mask_iou, "per_view": ev.per_view, "seconds": t_eval.elapsed().as_secs_f64() },
         "weak_result": weak,
         "seconds": { "init": seconds_init, "train": seconds_train, "total": t_total.elapsed().as_secs_f64() },
@@ -571,6 +607,22 @@ pub fn run(args: &TrainArgs, ctx: &Context) -> anyhow::Result<()> {
 
 fn rot(m: &DMat3, v: [f32; 3]) -> [f32; 3] {
     (*m * DVec3::from(v.map(f64::from))).as_vec3().to_array()
+}
+
+/// The simplification error bound of a trained mesh, in cells of the scene's mesh grid (about
+/// 0.2 pixel footprints at the scene-derived resolution). Chosen by what the shipped mesh keeps of
+/// the field's accuracy, `bench train --asset-bound-cells 0.5 0.25 0.125` (cpu, 2000 iterations,
+/// 96^3, Chamfer / NC of the simplified mesh against the field's 0.169% / 0.984 on the example and
+/// 0.249% / 0.974 on glossy): 0.5 cells (the analytic exports' bound) 0.235% / 0.971 and 0.312% /
+/// 0.968 at 1.4k / 3.7k triangles; 0.25 cells 0.189% / 0.977 and 0.268% / 0.971; 0.125 cells
+/// 0.174% / 0.980 and 0.254% / 0.972 at 3.7k / 6.8k triangles. A 160^3 grid adds 50% more
+/// triangles for 0.002% of Chamfer.
+pub const TRAINED_BOUND_CELLS: f32 = 0.125;
+
+/// How `export` meshes a trained SDF: the scene's resolution and [`TRAINED_BOUND_CELLS`] unless
+/// the asset flags say otherwise.
+pub fn trained_mesh_config(sizes: &super::stage1::SceneSizes, resolution: Option<usize>, error_bound: Option<f32>) -> MeshConfig {
+    MeshConfig { resolution: resolution.unwrap_or(sizes.mesh_resolution), error_bound, bound_cells: TRAINED_BOUND_CELLS, ..Default::default() }
 }
 
 /// The trained SDF as the asset back end's field, in the asset frame.
@@ -712,7 +764,7 @@ pub fn export_stage1(backend: &Backend, trainer: &Trainer, rs: &RunScene, asset:
     let resolution = asset.resolution.unwrap_or(cfg.sizes.mesh_resolution);
     let ecfg = ExportConfig {
         name: asset.name.clone().unwrap_or_else(|| default_name.to_string()),
-        mesh: MeshConfig { resolution, error_bound: asset.error_bound, ..Default::default() },
+        mesh: trained_mesh_config(&cfg.sizes, Some(resolution), asset.error_bound),
         texture: asset.texture,
         metres_per_unit: (asset.metres_per_unit / rs.scale) as f32,
         usdz: asset.usdz,

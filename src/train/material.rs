@@ -19,7 +19,6 @@ use crate::backend::{Backend, BackendError};
 use crate::context::Context;
 use crate::export::{AssetArgs, ExportConfig, ExportReport};
 use crate::mesh::field::{MaterialField, MaterialSamples};
-use crate::mesh::MeshConfig;
 use crate::render::{trace, trace_secondary, Rays, TraceConfig};
 use crate::scene::{Camera, Format, ReadOptions, View};
 use crate::sg::shade::Sg;
@@ -544,7 +543,7 @@ pub fn export_stage2(backend: &Backend, s1: &Trainer, s2: &Stage2Trainer, rs: &R
     let material = LearnedMaterial { model: &s2.model, rotation, feature: 16.0 * cfg.sizes.pixel_footprint };
     let ecfg = ExportConfig {
         name: asset.name.clone().unwrap_or_else(|| default_name.to_string()),
-        mesh: MeshConfig { resolution: asset.resolution.unwrap_or(cfg.sizes.mesh_resolution), error_bound: asset.error_bound, ..Default::default() },
+        mesh: super::cli::trained_mesh_config(&cfg.sizes, asset.resolution, asset.error_bound),
         texture: asset.texture,
         metres_per_unit: (asset.metres_per_unit / rs.scale) as f32,
         usdz: asset.usdz,

@@ -310,8 +310,9 @@ impl Stage1Config {
         if self.rays == 0 || self.iterations == 0 {
             return bad("rays and iterations must be > 0");
         }
-        if !(self.lr_field.is_finite() && self.lr_field > 0.0 && self.lr_radiance.is_finite() && self.lr_radiance > 0.0) {
-            return bad("learning rates must be > 0");
+        // lr_field 0 freezes the SDF (a given geometry: `train --init-mesh`); the radiance net always learns.
+        if !(self.lr_field.is_finite() && self.lr_field >= 0.0 && self.lr_radiance.is_finite() && self.lr_radiance > 0.0) {
+            return bad("learning rates must be > 0 (lr_field >= 0: 0 keeps the geometry as initialised)");
         }
         if self.checkpoint_every == 0 {
             return bad("checkpoint interval must be > 0");
