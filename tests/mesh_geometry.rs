@@ -334,3 +334,47 @@ fn non_finite_field_values_are_a_clear_error() {
         "{err}"
     );
 }
+
+/// Separate balls: a body, a part (a quarter of its radius: 6% of its area) and a speck (0.5%).
+struct Balls(Vec<([f32; 3], f32)>);
+
+impl pii_bake::mesh::field::SdfField for Balls {
+    fn name(&self) -> String {
+        "balls".into()
+    }
+    fn eval(&self, _: &Backend, points: &[[f32; 3]]) -> Result<pii_bake::mesh::field::SdfSamples, pii_bake::backend::BackendError> {
+        let (mut values, mut gradients) = (Vec::new(), Vec::new());
+        for p in points {
+            let (d, g) = self
+                .0
+                .iter()
+                .map(|(c, r)| {
+                    let v = [p[0] - c[0], p[1] - c[1], p[2] - c[2]];
+                    let l = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt().max(1e-9);
+                    (l - r, v.map(|x| x / l))
+                })
+                .min_by(|a, b| a.0.total_cmp(&b.0))
+                .unwrap();
+            values.push(d);
+            gradients.push(g);
+        }
+        Ok(pii_bake::mesh::field::SdfSamples { values, gradients })
+    }
+}
+
+#[test]
+fn separate_parts_are_kept_and_specks_dropped() {
+    let body = ([-0.3f32, 0.0, 0.0], 0.5f32);
+    let part = ([0.55f32, 0.0, 0.0], 0.125f32);
+    let speck = ([0.0f32, 0.75, 0.0], 0.035f32);
+    let res = build_mesh(&Backend::cpu(), &Balls(vec![body, part, speck]), &MeshConfig { resolution: 96, ..Default::default() }).unwrap();
+    let st = &res.stats;
+    assert_eq!(st.components, 3, "{st:?}");
+    assert!(st.dropped_triangles > 0 && st.watertight, "{st:?}");
+    // Every kept vertex lies on the body or the part, and both are there.
+    let near = |c: [f32; 3], r: f32, p: [f32; 3]| (((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2) + (p[2] - c[2]).powi(2)).sqrt() - r).abs() < 0.02;
+    let on_part = res.mesh.positions.iter().filter(|p| near(part.0, part.1, **p)).count();
+    assert!(on_part >= 8, "the part was dropped: {on_part} vertices on it");
+    assert!(res.mesh.positions.iter().all(|p| near(body.0, body.1, *p) || near(part.0, part.1, *p)), "a speck vertex survived");
+    topology::check_closed(&res.mesh).unwrap();
+}

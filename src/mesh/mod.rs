@@ -139,6 +139,9 @@ pub struct MeshConfig {
     pub error_bound: Option<f32>,
     /// The error bound in grid cells when `error_bound` is `None`.
     pub bound_cells: f32,
+    /// Components with fewer than this fraction of the largest one's triangles are dropped as
+    /// specks; larger ones are parts of the object and kept.
+    pub min_component_fraction: f32,
     /// Largest angle (degrees) allowed between the interpolated vertex normals and the SDF
     /// gradient inside triangles: keeps flat faces next to rounded edges from shading bent.
     pub normal_tolerance_deg: f32,
@@ -150,6 +153,7 @@ impl Default for MeshConfig {
             resolution: 256,
             error_bound: None,
             bound_cells: 0.5,
+            min_component_fraction: MIN_COMPONENT_FRACTION,
             normal_tolerance_deg: 10.0,
         }
     }
@@ -1322,10 +1326,16 @@ pub fn simplify_sdf(
     Ok((out, report))
 }
 
+/// Parts below 1% of the largest component's triangles are specks. Measured on the exports at
+/// hand: a trained SDF's floater was 24 of 274k triangles (0.009%); the ball resting (not
+/// touching) in `make_scene.py`'s bowl is 40k of 304k (13%), and keeping only the largest
+/// component shipped the bowl without its ball.
+pub const MIN_COMPONENT_FRACTION: f32 = 0.01;
+
 /// Meshes from this many triangles get meshoptimizer's pre-pass (see [`build_mesh`]).
 const PRESIMPLIFY_MIN_TRIANGLES: usize = 200_000;
 
-/// Grid → surface → largest component → closed → simplified → normals.
+/// Grid → surface → its parts (specks dropped) → closed → simplified → normals.
 pub fn build_mesh(
     backend: &Backend,
     sdf: &dyn SdfField,
@@ -1358,7 +1368,7 @@ pub fn build_mesh(
 
     tracing::debug!("extracted mesh: closed {:?}", topology::check_closed(&raw));
     let t = Instant::now();
-    let (mut mesh, components) = topology::largest_component(&raw);
+    let (mut mesh, components) = topology::main_components(&raw, cfg.min_component_fraction);
     stats.components = components;
     stats.dropped_triangles = raw.triangle_count() - mesh.triangle_count();
     stats.holes_closed = topology::close_holes(&mut mesh);

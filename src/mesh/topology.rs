@@ -16,6 +16,14 @@ fn find(parent: &mut [u32], mut i: u32) -> u32 {
 /// Keep the connected component (through shared vertices) with the most triangles.
 /// Returns the mesh (unused vertices dropped) and the number of components found.
 pub fn largest_component(mesh: &Mesh) -> (Mesh, usize) {
+    main_components(mesh, 1.0)
+}
+
+/// Keep every connected component (through shared vertices) with at least `min_fraction` of the
+/// largest one's triangles: the parts of an object (a ball resting in a bowl without touching it)
+/// stay, specks far smaller than any part go. Returns the mesh (unused vertices dropped) and the
+/// number of components found.
+pub fn main_components(mesh: &Mesh, min_fraction: f32) -> (Mesh, usize) {
     let n = mesh.positions.len();
     let mut parent: Vec<u32> = (0..n as u32).collect();
     for t in mesh.triangles() {
@@ -32,15 +40,16 @@ pub fn largest_component(mesh: &Mesh) -> (Mesh, usize) {
         *count.entry(find(&mut parent, t[0])).or_default() += 1;
     }
     let components = count.len();
-    let Some((&best, _)) = count
+    let Some((&best, &most)) = count
         .iter()
         .max_by_key(|(&r, &c)| (c, std::cmp::Reverse(r)))
     else {
         return (mesh.clone(), 0);
     };
+    let keep = |root: u32| root == best || count[&root] as f64 >= min_fraction as f64 * most as f64;
     let mut indices = Vec::with_capacity(mesh.indices.len());
     for t in mesh.triangles() {
-        if find(&mut parent, t[0]) == best {
+        if keep(find(&mut parent, t[0])) {
             indices.extend_from_slice(&t);
         }
     }
@@ -242,6 +251,9 @@ mod tests {
         assert_eq!(n, 2);
         assert_eq!((big.triangle_count(), big.positions.len()), (8, 6));
         check_closed(&big).unwrap();
+        // The 7-triangle part is 7/8 of the largest: kept at a 10% threshold, dropped at 90%.
+        assert_eq!(main_components(&m, 0.1).0.triangle_count(), 15);
+        assert_eq!(main_components(&m, 0.9).0.triangle_count(), 8);
         // Remove two adjacent faces of the octahedron: one hole with a 4-edge boundary.
         let mut holed = a.clone();
         holed.indices.drain(0..6);
