@@ -52,6 +52,14 @@ impl Mesh {
         Ok(m)
     }
 
+    /// From an indexed f32 triangle list (the mesh and asset back end's layout).
+    pub fn from_indexed(positions: &[[f32; 3]], indices: &[u32]) -> Mesh {
+        Mesh {
+            positions: positions.iter().map(|p| DVec3::from(p.map(f64::from))).collect(),
+            triangles: indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect(),
+        }
+    }
+
     pub fn area(&self) -> f64 {
         self.triangles.iter().map(|t| self.tri_cross(t).length() * 0.5).sum()
     }

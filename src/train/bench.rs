@@ -123,10 +123,7 @@ fn measure(backend: &Backend, f: &(dyn Fn(&[f32]) -> Result<Vec<f32>, crate::bac
     if mesh.triangle_count() == 0 {
         return (f64::NAN, f64::NAN);
     }
-    let pred = crate::eval::mesh::Mesh {
-        positions: mesh.positions.iter().map(|p| DVec3::from(p.map(f64::from))).collect(),
-        triangles: mesh.indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect(),
-    };
+    let pred = crate::eval::mesh::Mesh::from_indexed(&mesh.positions, &mesh.indices);
     let m = crate::eval::mesh::compare_meshes(&pred, gt, 20_000, 1);
     (m.chamfer / gt_size, m.normal_consistency)
 }
@@ -139,10 +136,7 @@ fn measure_asset(backend: &Backend, model: &super::stage1::Model, mesh_cfg: &cra
     let t = Instant::now();
     let sdf = super::cli::TrainedSdf::new(backend, model, glam::DMat3::IDENTITY)?;
     let res = crate::mesh::build_mesh(backend, &sdf, mesh_cfg)?;
-    let pred = crate::eval::mesh::Mesh {
-        positions: res.mesh.positions.iter().map(|p| DVec3::from(p.map(f64::from))).collect(),
-        triangles: res.mesh.indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect(),
-    };
+    let pred = crate::eval::mesh::Mesh::from_indexed(&res.mesh.positions, &res.mesh.indices);
     let m = crate::eval::mesh::compare_meshes(&pred, gt, 20_000, 1);
     Ok(serde_json::json!({
         "resolution": mesh_cfg.resolution, "bound_cells": mesh_cfg.bound_cells, "error_bound": res.stats.error_bound,

@@ -357,10 +357,8 @@ pub fn train_stage1(
         let mut t = Trainer::new(cfg.clone())?;
         if let Some(mesh_path) = &opts.init_mesh {
             let ti = Instant::now();
+            // `read` refuses a mesh without faces, naming the file.
             let mut mesh = crate::eval::mesh::Mesh::read(mesh_path)?;
-            if mesh.triangles.is_empty() {
-                return Err(DataError::new(mesh_path, "the mesh has no triangles").into());
-            }
             for p in &mut mesh.positions {
                 *p = scene.normalisation.to_normalised(*p);
             }
@@ -761,10 +759,9 @@ pub fn export_stage1(backend: &Backend, trainer: &Trainer, rs: &RunScene, asset:
     let cfg = &trainer.cfg;
     let sdf = TrainedSdf::new(backend, &trainer.model, rotation).context("meshing the trained SDF")?;
     let material = RadiancePreview { model: &trainer.model, rotation, roughness: 0.5, feature: 16.0 * cfg.sizes.pixel_footprint };
-    let resolution = asset.resolution.unwrap_or(cfg.sizes.mesh_resolution);
     let ecfg = ExportConfig {
         name: asset.name.clone().unwrap_or_else(|| default_name.to_string()),
-        mesh: trained_mesh_config(&cfg.sizes, Some(resolution), asset.error_bound),
+        mesh: trained_mesh_config(&cfg.sizes, asset.resolution, asset.error_bound),
         texture: asset.texture,
         metres_per_unit: (asset.metres_per_unit / rs.scale) as f32,
         usdz: asset.usdz,

@@ -527,10 +527,7 @@ pub fn ground_truth_metrics(
     for p in &mut gt.positions {
         *p = rotation * (*p - c) * metres_per_unit + shift;
     }
-    let pred = crate::eval::mesh::Mesh {
-        positions: report.geometry.positions.iter().map(|p| DVec3::from(p.map(f64::from))).collect(),
-        triangles: report.geometry.indices.chunks_exact(3).map(|t| [t[0], t[1], t[2]]).collect(),
-    };
+    let pred = crate::eval::mesh::Mesh::from_indexed(&report.geometry.positions, &report.geometry.indices);
     let m = crate::eval::mesh::compare_meshes(&pred, &gt, 20_000, 1);
     let (lo, hi) = report.bounds_m;
     let size = (0..3).map(|k| (hi[k] - lo[k]) as f64).fold(0.0, f64::max);
