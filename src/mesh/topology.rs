@@ -13,16 +13,10 @@ fn find(parent: &mut [u32], mut i: u32) -> u32 {
     i
 }
 
-/// Keep the connected component (through shared vertices) with the most triangles.
-/// Returns the mesh (unused vertices dropped) and the number of components found.
-pub fn largest_component(mesh: &Mesh) -> (Mesh, usize) {
-    main_components(mesh, 1.0)
-}
-
 /// Keep every connected component (through shared vertices) with at least `min_fraction` of the
 /// largest one's triangles: the parts of an object (a ball resting in a bowl without touching it)
 /// stay, specks far smaller than any part go. Returns the mesh (unused vertices dropped) and the
-/// number of components found.
+/// number of components found. A `min_fraction` of 1 keeps the largest component alone.
 pub fn main_components(mesh: &Mesh, min_fraction: f32) -> (Mesh, usize) {
     let n = mesh.positions.len();
     let mut parent: Vec<u32> = (0..n as u32).collect();
@@ -247,7 +241,7 @@ mod tests {
         let off = m.positions.len() as u32;
         m.positions.extend(&b.positions);
         m.indices.extend(b.indices[..21].iter().map(|i| i + off));
-        let (big, n) = largest_component(&m);
+        let (big, n) = main_components(&m, 1.0);
         assert_eq!(n, 2);
         assert_eq!((big.triangle_count(), big.positions.len()), (8, 6));
         check_closed(&big).unwrap();
