@@ -527,16 +527,17 @@ pub fn ground_truth_metrics(
     for p in &mut gt.positions {
         *p = rotation * (*p - c) * metres_per_unit + shift;
     }
-    let pred = crate::eval::mesh::Mesh::from_indexed(&report.geometry.positions, &report.geometry.indices);
+    let pred = crate::eval::mesh::Mesh::from_indexed(&report.geometry.positions, &report.geometry.indices).with_normals(&report.geometry.normals);
     let m = crate::eval::mesh::compare_meshes(&pred, &gt, 20_000, 1);
     let (lo, hi) = report.bounds_m;
     let size = (0..3).map(|k| (hi[k] - lo[k]) as f64).fold(0.0, f64::max);
     ctx.say(format!(
-        "vs {}: Chamfer {:.4} m ({:.2}% of the object's size), normal consistency {:.3} [{:.2} s]",
+        "vs {}: Chamfer {:.4} m ({:.2}% of the object's size), normal consistency {:.3} (faces) / {:.3} (shading normals) [{:.2} s]",
         gt_path.display(),
         m.chamfer,
         100.0 * m.chamfer / size.max(1e-12),
         m.normal_consistency,
+        m.shading_normal_consistency.unwrap_or(f64::NAN),
         t.elapsed().as_secs_f64()
     ));
     Ok(serde_json::json!({
