@@ -106,21 +106,15 @@ impl Mesh {
         (b - a).cross(c - a)
     }
 
-    /// `n` points uniformly distributed over the surface area, with their face normals.
-    pub fn sample(&self, n: usize, seed: u64) -> (Vec<DVec3>, Vec<DVec3>) {
-        let s = self.sample_barycentric(n, seed);
-        let pts = s.iter().map(|&(k, u, v)| self.point_at(k, u, v)).collect();
-        let nrm = s.iter().map(|&(k, _, _)| self.tri_cross(&self.triangles[k]).normalize_or_zero()).collect();
-        (pts, nrm)
-    }
-
+    /// The point at barycentric (u, v) (weights of the second and third corner) of triangle `k`.
     fn point_at(&self, k: usize, u: f64, v: f64) -> DVec3 {
         let t = &self.triangles[k];
         let (a, b, c) = (self.positions[t[0] as usize], self.positions[t[1] as usize], self.positions[t[2] as usize]);
         a + (b - a) * u + (c - a) * v
     }
 
-    /// The area-uniform samples of [`Mesh::sample`] as (triangle, u, v).
+    /// `n` points uniformly distributed over the surface area, as (triangle, u, v) with
+    /// [`Mesh::point_at`]'s barycentrics.
     fn sample_barycentric(&self, n: usize, seed: u64) -> Vec<(usize, f64, f64)> {
         let mut cdf = Vec::with_capacity(self.triangles.len());
         let mut acc = 0.0;
@@ -504,28 +498,29 @@ pub struct MeshMetrics {
     pub shading_normal_consistency: Option<f64>,
 }
 
-/// One direction: mean distance from the samples `a` (normals `an`) to the surface of `b`, mean
-/// |n·n'| with the normal of the nearest triangle, and mean |n·n'| with `b`'s shading normal at
-/// the nearest point (NaN if either is empty).
-fn directed(a: &[DVec3], an: &[DVec3], b: &Mesh) -> (f64, f64, f64) {
+/// One direction, from samples `a` (face normals `af`, shading normals `an`) to the surface of
+/// `b`: mean distance, mean |n·n'| between the face normals of the sample and of the nearest
+/// triangle, and mean |n·n'| between the shading normals of the sample and of `b` at the nearest
+/// point (NaN if either is empty).
+fn directed(a: &[DVec3], af: &[DVec3], an: &[DVec3], b: &Mesh) -> (f64, f64, f64) {
     use rayon::prelude::*;
     if a.is_empty() || b.triangles.is_empty() {
         return (f64::NAN, f64::NAN, f64::NAN);
     }
     let tree = TriBvh::new(b);
-    let (d, nc, sc) = a
-        .par_iter()
-        .zip(an)
-        .map(|(p, n)| {
-            let (j, d2) = tree.nearest(*p).expect("non-empty mesh");
-            let face = n.dot(b.tri_cross(&b.triangles[j]).normalize_or_zero()).abs();
+    let (d, nc, sc) = (0..a.len())
+        .into_par_iter()
+        .map(|i| {
+            let p = a[i];
+            let (j, d2) = tree.nearest(p).expect("non-empty mesh");
+            let t = &b.triangles[j];
+            let face = af[i].dot(b.tri_cross(t).normalize_or_zero()).abs();
             let shading = if b.normals.is_empty() {
-                face
+                an[i].dot(b.tri_cross(t).normalize_or_zero()).abs()
             } else {
-                let t = &b.triangles[j];
-                let q = closest_on_triangle(*p, [b.positions[t[0] as usize], b.positions[t[1] as usize], b.positions[t[2] as usize]]);
+                let q = closest_on_triangle(p, [b.positions[t[0] as usize], b.positions[t[1] as usize], b.positions[t[2] as usize]]);
                 let (u, v) = b.barycentric(j, q);
-                n.dot(b.shading_normal(j, u, v)).abs()
+                an[i].dot(b.shading_normal(j, u, v)).abs()
             };
             (d2.sqrt(), face, shading)
         })
@@ -536,19 +531,18 @@ fn directed(a: &[DVec3], an: &[DVec3], b: &Mesh) -> (f64, f64, f64) {
 
 /// Chamfer distance and normal consistency between a predicted and a ground-truth mesh.
 pub fn compare_meshes(pred: &Mesh, gt: &Mesh, samples: usize, seed: u64) -> MeshMetrics {
-    let sp = pred.sample_barycentric(samples, seed);
-    let sg = gt.sample_barycentric(samples, seed);
-    let points = |m: &Mesh, s: &[(usize, f64, f64)]| -> (Vec<DVec3>, Vec<DVec3>, Vec<DVec3>) {
+    let points = |m: &Mesh| -> (Vec<DVec3>, Vec<DVec3>, Vec<DVec3>) {
+        let s = m.sample_barycentric(samples, seed);
         let p = s.iter().map(|&(k, u, v)| m.point_at(k, u, v)).collect();
         let f = s.iter().map(|&(k, _, _)| m.tri_cross(&m.triangles[k]).normalize_or_zero()).collect();
         let n = s.iter().map(|&(k, u, v)| m.shading_normal(k, u, v)).collect();
         (p, f, n)
     };
-    let (pa, pf, ps) = points(pred, &sp);
-    let (ga, gf, gs) = points(gt, &sg);
-    let (acc, nc1, _) = directed(&pa, &pf, gt);
-    let (comp, nc2, _) = directed(&ga, &gf, pred);
-    let shading = (!pred.normals.is_empty() || !gt.normals.is_empty()).then(|| 0.5 * (directed(&pa, &ps, gt).2 + directed(&ga, &gs, pred).2));
+    let (pa, pf, ps) = points(pred);
+    let (ga, gf, gs) = points(gt);
+    let (acc, nc1, sc1) = directed(&pa, &pf, &ps, gt);
+    let (comp, nc2, sc2) = directed(&ga, &gf, &gs, pred);
+    let shading = (!pred.normals.is_empty() || !gt.normals.is_empty()).then_some(0.5 * (sc1 + sc2));
     MeshMetrics { samples, accuracy: acc, completeness: comp, chamfer: 0.5 * (acc + comp), normal_consistency: 0.5 * (nc1 + nc2), shading_normal_consistency: shading }
 }
 
