@@ -508,7 +508,10 @@ fn directed(a: &[DVec3], af: &[DVec3], an: &[DVec3], b: &Mesh) -> (f64, f64, f64
         return (f64::NAN, f64::NAN, f64::NAN);
     }
     let tree = TriBvh::new(b);
-    let (d, nc, sc) = (0..a.len())
+    // Per-sample terms in sample order, summed sequentially: a parallel reduce would sum in
+    // whatever order work stealing gives, and the figures would differ in their last bits
+    // between runs of the same input.
+    let terms: Vec<(f64, f64, f64)> = (0..a.len())
         .into_par_iter()
         .map(|i| {
             let p = a[i];
@@ -524,7 +527,8 @@ fn directed(a: &[DVec3], af: &[DVec3], an: &[DVec3], b: &Mesh) -> (f64, f64, f64
             };
             (d2.sqrt(), face, shading)
         })
-        .reduce(|| (0.0, 0.0, 0.0), |x, y| (x.0 + y.0, x.1 + y.1, x.2 + y.2));
+        .collect();
+    let (d, nc, sc) = terms.iter().fold((0.0, 0.0, 0.0), |x, y| (x.0 + y.0, x.1 + y.1, x.2 + y.2));
     let k = a.len() as f64;
     (d / k, nc / k, sc / k)
 }
