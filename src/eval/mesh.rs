@@ -517,9 +517,10 @@ fn directed(a: &[DVec3], af: &[DVec3], an: &[DVec3], b: &Mesh) -> (f64, f64, f64
             let p = a[i];
             let (j, d2) = tree.nearest(p).expect("non-empty mesh");
             let t = &b.triangles[j];
-            let face = af[i].dot(b.tri_cross(t).normalize_or_zero()).abs();
+            let nb = b.tri_cross(t).normalize_or_zero();
+            let face = af[i].dot(nb).abs();
             let shading = if b.normals.is_empty() {
-                an[i].dot(b.tri_cross(t).normalize_or_zero()).abs()
+                an[i].dot(nb).abs()
             } else {
                 let q = closest_on_triangle(p, [b.positions[t[0] as usize], b.positions[t[1] as usize], b.positions[t[2] as usize]]);
                 let (u, v) = b.barycentric(j, q);
