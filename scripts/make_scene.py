@@ -6,7 +6,7 @@ view transform "Standard", transparent film, one Principled BSDF per object (met
 from image textures), lit only by an HDR latlong world from `shared/data/envmaps`.
 
 Usage:
-    python scripts/make_scene.py --scene {spot,bowl,glossy} --out DIR [--width 200] [--height 200]
+    python scripts/make_scene.py --scene {spot,bowl,glossy,textureless} --out DIR [--width 200] [--height 200]
         [--train 24] [--test 4] [--samples 64] [--gt-samples 16] [--env-width 512] [--threads 2]
         [--data ../shared/data]
 
@@ -34,7 +34,8 @@ Output layout (all paths relative to DIR; the world frame is Blender's: right-ha
     render_log.json                               wall-clock time per phase (not deterministic; not compared).
 
 Measured (200x200, 24 train + 4 test views, 64 spp, GT passes 16 spp, 2 relit envs, env 256x128, 2 threads on a
-shared 2-core CPU): spot 235 s, bowl 498 s, glossy 254 s. The bundled example tests/data/example is
+shared 2-core CPU): spot 235 s, bowl 498 s, glossy 254 s; textureless (the bowl's shapes, one uniform matte
+colour each; 512x256 envs, the CPU not shared) 159 s. The bundled example tests/data/example is
 `--scene spot --width 200 --height 200 --train 24 --test 4 --samples 64 --env-width 256`.
 """
 
@@ -59,7 +60,7 @@ def parse_args(argv):
     if not os.path.isdir(default_data):
         default_data = "/work/shared/data"
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--scene", choices=["spot", "bowl", "glossy"], required=True)
+    p.add_argument("--scene", choices=["spot", "bowl", "glossy", "textureless"], required=True)
     p.add_argument("--out", required=True)
     p.add_argument("--width", type=int, default=200)
     p.add_argument("--height", type=int, default=200)
@@ -79,6 +80,7 @@ ENVS = {
     "spot": ("blender_studiolights/courtyard.exr", ["blender_studiolights/sunset.exr", "invrender/envmap6.exr"]),
     "bowl": ("blender_studiolights/sunrise.exr", ["blender_studiolights/studio.exr", "blender_studiolights/city.exr"]),
     "glossy": ("blender_studiolights/forest.exr", ["blender_studiolights/interior.exr", "invrender/envmap12.exr"]),
+    "textureless": ("blender_studiolights/courtyard.exr", ["blender_studiolights/studio.exr", "invrender/envmap3.exr"]),
 }
 
 
@@ -221,9 +223,9 @@ def build_spot(args, tex_dir):
     return [ob]
 
 
-def build_bowl(args, tex_dir):
-    # A hemispherical bowl (open at the top, thick wall) holding a ball: strong interreflection and
-    # self-shadowing inside the bowl.
+def bowl_and_ball():
+    """A hemispherical bowl (open at the top, thick wall) holding a ball: strong interreflection and
+    self-shadowing inside the bowl."""
     bowl = add_uv_sphere("bowl", 1.0, (0.0, 0.0, 0.0))
     me = bowl.data
     import bmesh
@@ -239,6 +241,11 @@ def build_bowl(args, tex_dir):
     bpy.context.view_layer.objects.active = bowl
     bpy.ops.object.modifier_apply(modifier="wall")
     ball = add_uv_sphere("ball", 0.45, (0.0, 0.0, -0.5))
+    return bowl, ball
+
+
+def build_bowl(args, tex_dir):
+    bowl, ball = bowl_and_ball()
     a1 = save_texture("bowl_albedo", checker_albedo(256, (0.8, 0.75, 0.7), (0.55, 0.2, 0.15), 8),
                       os.path.join(tex_dir, "albedo_bowl.png"), non_color=False)
     r1 = save_texture("bowl_rough", roughness_pattern(256, 0.35, 0.75, 2), os.path.join(tex_dir, "roughness_bowl.png"),
@@ -251,6 +258,22 @@ def build_bowl(args, tex_dir):
     bowl.data.materials.append(principled_material("bowl", a1, r1))
     ball.data.materials.clear()
     ball.data.materials.append(principled_material("ball", a2, r2))
+    return [bowl, ball]
+
+
+def build_textureless(args, tex_dir):
+    # The bowl and ball in one uniform matte colour each: no texture for photo-consistency or the
+    # photometric loss to lock onto, only shading, silhouettes and interreflection (a known failure
+    # case for multi-view stereo and inverse rendering alike).
+    bowl, ball = bowl_and_ball()
+    mats = []
+    for ob, colour, rough in ((bowl, (0.7, 0.68, 0.62), 0.5), (ball, (0.35, 0.5, 0.7), 0.4)):
+        a = save_texture(ob.name + "_albedo", checker_albedo(16, colour, colour, 1),
+                         os.path.join(tex_dir, "albedo_%s.png" % ob.name), non_color=False)
+        r = save_texture(ob.name + "_rough", roughness_pattern(16, rough, rough, 1),
+                         os.path.join(tex_dir, "roughness_%s.png" % ob.name), non_color=True)
+        ob.data.materials.clear()
+        ob.data.materials.append(principled_material(ob.name, a, r))
     return [bowl, ball]
 
 
@@ -444,7 +467,7 @@ def main(argv):
     times = {}
     t0 = time.time()
     tex_dir = os.path.join(out, "gt")
-    objs = {"spot": build_spot, "bowl": build_bowl, "glossy": build_glossy}[args.scene](args, tex_dir)
+    objs = {"spot": build_spot, "bowl": build_bowl, "glossy": build_glossy, "textureless": build_textureless}[args.scene](args, tex_dir)
     verts, tris = world_triangles(objs)
     write_obj(os.path.join(out, "gt", "mesh.obj"), verts, tris)
     lo, hi = verts.min(axis=0), verts.max(axis=0)
