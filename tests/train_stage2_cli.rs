@@ -233,6 +233,56 @@ fn eight_views_give_an_asset_and_finite_figures() {
     assert!(asset.join("eight.glb").is_file() && asset.join("env.exr").is_file());
 }
 
+/// `info --json`'s photo-texture record of a scene.
+fn photo_texture(scene: &Path) -> serde_json::Value {
+    let o = pii(&["--json", "info", scene.to_str().unwrap(), "--downscale", "4"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let rec: serde_json::Value = String::from_utf8_lossy(&o.stdout).lines().filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok()).find(|v| v["type"] == "scene_info").expect("a scene_info record");
+    rec["photo_texture"].clone()
+}
+
+#[test]
+fn a_textureless_object_is_flagged_as_a_weak_result() {
+    // The example with every training photo flattened to one colour inside its mask: the stage-2
+    // report must flag it; the example as shipped is not textureless.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("flat");
+    copy_dir(&example(), &scene);
+    for sub in ["train", "test", "env", "gt"] {
+        copy_dir(&example().join(sub), &scene.join(sub));
+    }
+    for e in std::fs::read_dir(scene.join("train")).unwrap() {
+        let path = e.unwrap().path();
+        if path.extension().and_then(|x| x.to_str()) != Some("png") {
+            continue;
+        }
+        let img = pii_bake::image_io::read_image_linear(&path).unwrap();
+        assert_eq!(img.channels, 4, "the example's photos carry their mask as alpha");
+        let mut data = img.data.clone();
+        for px in data.chunks_exact_mut(4) {
+            px[..3].copy_from_slice(&[0.4, 0.35, 0.3]);
+        }
+        pii_bake::image_io::write_png8(&path, img.width, img.height, 4, &data, true).unwrap();
+    }
+    let shipped = photo_texture(&example());
+    assert_eq!(shipped["textureless"], false, "{shipped}");
+    let flat = photo_texture(&scene);
+    assert_eq!(flat["textureless"], true, "{flat}");
+    assert!(flat["contrast"].as_f64().unwrap() < shipped["contrast"].as_f64().unwrap() / 4.0, "{flat} vs {shipped}");
+
+    let run = dir.path().join("run");
+    let o = pii(&[
+        "train", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--stage", "all", "--rays", "96", "--downscale", "4", "--init-steps", "20", "--iterations", "3",
+        "--lobes", "6", "--material-iterations", "3", "--material-batch", "64", "--material-set", "points=600",
+    ]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("WEAK RESULT") && text(&o).contains("little texture"), "{}", text(&o));
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("material_report.json")).unwrap()).unwrap();
+    assert_eq!(report["weak_result"], true);
+    assert!(report["flags"].as_array().unwrap().iter().any(|f| f.as_str().unwrap().contains("little texture")), "{}", report["flags"]);
+    assert!(report["photo_texture"].as_f64().unwrap() < 0.08);
+}
+
 #[test]
 fn ctrl_c_in_stage_two_writes_a_checkpoint_and_resume_continues() {
     let dir = tempfile::tempdir().unwrap();

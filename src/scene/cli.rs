@@ -39,6 +39,8 @@ pub fn summary(scene: &Scene) -> serde_json::Value {
     };
     let dist = stats(scene.views.iter().map(|v| v.camera.center().length())).map(|(a, m, b)| json!({"min": a, "mean": m, "max": b}));
     let cov = stats(scene.views.iter().filter_map(|v| v.mask_coverage()));
+    let train: Vec<&super::View> = scene.views_in(Split::Train).collect();
+    let texture = super::texture::photo_texture(&train);
     let n = &scene.normalisation;
     json!({
         "source": scene.source.display().to_string(),
@@ -61,6 +63,12 @@ pub fn summary(scene: &Scene) -> serde_json::Value {
         "masks": {
             "views_with_mask": scene.views.iter().filter(|v| v.mask.is_some()).count(),
             "coverage": cov.map(|(a, m, b)| json!({"min": a, "mean": m, "max": b})),
+        },
+        "photo_texture": {
+            "contrast": texture,
+            "textureless": texture.map(|t| t < super::texture::TEXTURELESS_BELOW),
+            "threshold": super::texture::TEXTURELESS_BELOW,
+            "what": "75th percentile of the band-pass contrast of log luminance inside the training masks (src/scene/texture.rs)",
         },
     })
 }
@@ -100,5 +108,10 @@ pub fn run(args: &InfoArgs, ctx: &Context) -> anyhow::Result<()> {
     ctx.say(format!("camera distance (normalised) {}", f3(&s["camera_distance_normalised"])));
     ctx.say(format!("up axis           [{:.3}, {:.3}, {:.3}] (nearest {})", n.up_axis.x, n.up_axis.y, n.up_axis.z, n.up_axis_name));
     ctx.say(format!("masks             {} views, coverage {}", s["masks"]["views_with_mask"], f3(&s["masks"]["coverage"])));
+    ctx.say(match s["photo_texture"]["contrast"].as_f64() {
+        Some(t) if t < super::texture::TEXTURELESS_BELOW => format!("photo texture     {t:.3} (below {}: textureless, albedo and lighting poorly separable)", super::texture::TEXTURELESS_BELOW),
+        Some(t) => format!("photo texture     {t:.3}"),
+        None => "photo texture     - (needs masks)".to_string(),
+    });
     Ok(())
 }

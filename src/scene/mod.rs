@@ -28,6 +28,7 @@ pub mod colmap;
 pub mod idr;
 pub mod llff;
 pub mod normalise;
+pub mod texture;
 pub mod transforms;
 
 use std::path::{Path, PathBuf};

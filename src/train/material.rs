@@ -317,6 +317,14 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     if mean_rough < 0.05 || mean_rough > 0.95 {
         flags.push(format!("roughness saturated (mean {mean_rough:.2})"));
     }
+    // A one-colour object: nothing in the photos tells its albedo from the shading on it.
+    let texture = crate::scene::texture::photo_texture(&views);
+    if let Some(t) = texture.filter(|&t| t < crate::scene::texture::TEXTURELESS_BELOW) {
+        flags.push(format!(
+            "the photos show little texture (contrast {t:.3} < {}): a textureless object, whose albedo keeps shading that light and material cannot be told apart by",
+            crate::scene::texture::TEXTURELESS_BELOW
+        ));
+    }
     let report = serde_json::json!({
         "stage": "material",
         "preset": cfg.preset,
@@ -335,6 +343,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "last": last,
         "it_per_s": its,
         "material": { "mean_albedo": mean_alb, "mean_roughness": mean_rough },
+        "photo_texture": texture,
         "environment": { "total_energy": trainer.model.lobe_energies().iter().sum::<f64>(), "lobes_exported": cfg.lobes - idle, "idle_lobe_fraction": super::stage2::IDLE_LOBE_FRACTION },
         "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr_pixels": super::cli::HELD_OUT_PSNR_PIXELS, "psnr": psnr, "per_view": per_view, "seconds": t_eval.elapsed().as_secs_f64() },
         "weak_result": !flags.is_empty(),
