@@ -30,6 +30,22 @@ fn curve(run: &Path) -> Vec<String> {
     std::fs::read_to_string(run.join("material_curve.csv")).unwrap().lines().skip(1).map(|l| l.rsplit_once(',').unwrap().0.to_string()).collect()
 }
 
+/// A copy of the example scene (its files and its train/test/env/gt folders).
+fn copy_example(dst: &Path) {
+    copy_dir(&example(), dst);
+    for sub in ["train", "test", "env", "gt"] {
+        copy_dir(&example().join(sub), &dst.join(sub));
+    }
+}
+
+/// Both stages at test size on `scene` into `run`.
+fn train_all_tiny(scene: &Path, run: &Path) -> std::process::Output {
+    pii(&[
+        "train", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--stage", "all", "--rays", "96", "--downscale", "4", "--init-steps", "20", "--iterations", "3",
+        "--lobes", "6", "--material-iterations", "4", "--material-batch", "64", "--material-set", "points=600",
+    ])
+}
+
 fn copy_dir(src: &Path, dst: &Path) {
     std::fs::create_dir_all(dst).unwrap();
     for e in std::fs::read_dir(src).unwrap() {
@@ -115,10 +131,7 @@ fn stage_two_bad_inputs_give_clear_errors() {
     let run = dir.path().join("run");
     stage1(&run);
     let other = dir.path().join("other_scene");
-    copy_dir(&example(), &other);
-    for sub in ["train", "test", "env", "gt"] {
-        copy_dir(&example().join(sub), &other.join(sub));
-    }
+    copy_example(&other);
     let o = pii(&["train", other.to_str().unwrap(), "--out", run.to_str().unwrap(), "--stage", "material", "--material-iterations", "1", "--downscale", "4"]);
     assert_eq!(o.status.code(), Some(1), "{}", text(&o));
     assert!(text(&o).contains("another scene"), "{}", text(&o));
@@ -207,10 +220,7 @@ fn bench_material_writes_figures_per_variant() {
 fn eight_views_give_an_asset_and_finite_figures() {
     let dir = tempfile::tempdir().unwrap();
     let scene = dir.path().join("eight");
-    copy_dir(&example(), &scene);
-    for sub in ["train", "test", "env", "gt"] {
-        copy_dir(&example().join(sub), &scene.join(sub));
-    }
+    copy_example(&scene);
     let tf = scene.join("transforms_train.json");
     let mut v: serde_json::Value = serde_json::from_slice(&std::fs::read(&tf).unwrap()).unwrap();
     let frames: Vec<serde_json::Value> = v["frames"].as_array().unwrap().iter().step_by(3).take(8).cloned().collect();
@@ -218,10 +228,7 @@ fn eight_views_give_an_asset_and_finite_figures() {
     v["frames"] = serde_json::Value::Array(frames);
     std::fs::write(&tf, serde_json::to_vec(&v).unwrap()).unwrap();
     let run = dir.path().join("run");
-    let o = pii(&[
-        "train", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--stage", "all", "--rays", "96", "--downscale", "4", "--init-steps", "20", "--iterations", "3",
-        "--lobes", "6", "--material-iterations", "4", "--material-batch", "64", "--material-set", "points=600",
-    ]);
+    let o = train_all_tiny(&scene, &run);
     assert!(o.status.success(), "{}", text(&o));
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("material_report.json")).unwrap()).unwrap();
     assert!(report["eval"]["psnr"].as_f64().unwrap().is_finite());
@@ -247,10 +254,7 @@ fn a_textureless_object_is_flagged_as_a_weak_result() {
     // report must flag it; the example as shipped is not textureless.
     let dir = tempfile::tempdir().unwrap();
     let scene = dir.path().join("flat");
-    copy_dir(&example(), &scene);
-    for sub in ["train", "test", "env", "gt"] {
-        copy_dir(&example().join(sub), &scene.join(sub));
-    }
+    copy_example(&scene);
     for e in std::fs::read_dir(scene.join("train")).unwrap() {
         let path = e.unwrap().path();
         if path.extension().and_then(|x| x.to_str()) != Some("png") {
@@ -271,10 +275,7 @@ fn a_textureless_object_is_flagged_as_a_weak_result() {
     assert!(flat["contrast"].as_f64().unwrap() < shipped["contrast"].as_f64().unwrap() / 4.0, "{flat} vs {shipped}");
 
     let run = dir.path().join("run");
-    let o = pii(&[
-        "train", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--stage", "all", "--rays", "96", "--downscale", "4", "--init-steps", "20", "--iterations", "3",
-        "--lobes", "6", "--material-iterations", "3", "--material-batch", "64", "--material-set", "points=600",
-    ]);
+    let o = train_all_tiny(&scene, &run);
     assert!(o.status.success(), "{}", text(&o));
     assert!(text(&o).contains("WEAK RESULT") && text(&o).contains("little texture"), "{}", text(&o));
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("material_report.json")).unwrap()).unwrap();

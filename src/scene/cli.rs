@@ -108,10 +108,11 @@ pub fn run(args: &InfoArgs, ctx: &Context) -> anyhow::Result<()> {
     ctx.say(format!("camera distance (normalised) {}", f3(&s["camera_distance_normalised"])));
     ctx.say(format!("up axis           [{:.3}, {:.3}, {:.3}] (nearest {})", n.up_axis.x, n.up_axis.y, n.up_axis.z, n.up_axis_name));
     ctx.say(format!("masks             {} views, coverage {}", s["masks"]["views_with_mask"], f3(&s["masks"]["coverage"])));
-    ctx.say(match s["photo_texture"]["contrast"].as_f64() {
-        Some(t) if t < super::texture::TEXTURELESS_BELOW => format!("photo texture     {t:.3} (below {}: textureless, albedo and lighting poorly separable)", super::texture::TEXTURELESS_BELOW),
-        Some(t) => format!("photo texture     {t:.3}"),
-        None => "photo texture     - (needs masks)".to_string(),
+    let pt = &s["photo_texture"];
+    ctx.say(match (pt["contrast"].as_f64(), pt["textureless"].as_bool()) {
+        (Some(t), Some(true)) => format!("photo texture     {t:.3} (below {}: textureless, albedo and lighting poorly separable)", pt["threshold"]),
+        (Some(t), _) => format!("photo texture     {t:.3}"),
+        _ => "photo texture     - (needs masks)".to_string(),
     });
     Ok(())
 }
