@@ -1,4 +1,5 @@
-//! Small shared helpers: atomic file output, user-facing error kinds, seeded RNG.
+//! Small shared helpers: atomic file output, user-facing error kinds, seeded RNG, a parallel
+//! reduction whose rounding does not depend on the thread count.
 
 use std::fs;
 use std::io::Write;
@@ -119,6 +120,27 @@ mod tests {
     use super::*;
 
     #[test]
+    fn fold_ordered_gives_the_same_bits_on_any_thread_count() {
+        // Values over 12 orders of magnitude: any change in the order of the additions shows in
+        // the f32 sum's last bits.
+        let v: Vec<f32> =
+            (0..100_000u32).map(|i| (i as f32 * 0.37).sin() * 10f32.powi((i % 13) as i32 - 6)).collect();
+        let sum = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| fold_ordered(v.len(), 777, || 0.0f32, |a, i| *a += v[i], |a, b| *a += b))
+        };
+        // The same additions written out: each group from zero in order, the groups in order.
+        let mut want = 0.0f32;
+        for g in v.chunks(777) {
+            want += g.iter().fold(0.0f32, |a, &x| a + x);
+        }
+        for t in [1, 2, 3, 7, 16] {
+            assert_eq!(sum(t).to_bits(), want.to_bits(), "{t} threads");
+        }
+        assert_eq!(fold_ordered(0, 8, || 5.0f32, |a, _| *a += 1.0, |a, b| *a += b), 5.0, "no items: init()");
+    }
+
+    #[test]
     fn atomic_write_leaves_no_temp_and_reports_unwritable_folder() {
         let dir = tempfile::tempdir().unwrap();
         let p = dir.path().join("a.bin");
@@ -157,6 +179,40 @@ mod tests {
         assert!(err.contains("big.json") && err.contains("100 bytes"), "{err}");
         assert_eq!(read_bounded(&p, 100).unwrap().len(), 100);
     }
+}
+
+/// A parallel fold over `0..n` whose result is bit-identical on any thread count.
+///
+/// rayon's `fold`/`reduce` split the work where threads steal it, so a float sum's order (and
+/// its last bits) changes from run to run and from machine to machine; a seeded training run
+/// would then not repeat itself. Here the items are cut into fixed groups of `group`, each group
+/// is folded in index order (groups run in parallel), and the group results are merged in index
+/// order: the same sequence of additions whatever the pool.
+pub fn fold_ordered<A: Send>(
+    n: usize,
+    group: usize,
+    init: impl Fn() -> A + Sync + Send,
+    step: impl Fn(&mut A, usize) + Sync + Send,
+    mut merge: impl FnMut(&mut A, A),
+) -> A {
+    use rayon::prelude::*;
+    let group = group.max(1);
+    let parts: Vec<A> = (0..n.div_ceil(group))
+        .into_par_iter()
+        .map(|g| {
+            let mut a = init();
+            for i in g * group..((g + 1) * group).min(n) {
+                step(&mut a, i);
+            }
+            a
+        })
+        .collect();
+    let mut parts = parts.into_iter();
+    let mut acc = parts.next().unwrap_or_else(&init);
+    for p in parts {
+        merge(&mut acc, p);
+    }
+    acc
 }
 
 /// Keep freed heap memory in the process instead of returning it to the kernel.

@@ -450,20 +450,27 @@ impl Backend {
 
 /// Sum of squares (f64) and the number of non-finite values.
 fn grad_stats_cpu(g: &[f32]) -> (f64, u64) {
-    g.par_chunks(4096)
-        .map(|c| {
-            let mut s = 0.0f64;
-            let mut nf = 0u64;
-            for &x in c {
+    // Blocks of 4096 merged in order: the norm (and the clip scale) has the same bits on any
+    // thread count.
+    const BLOCK: usize = 4096;
+    crate::util::fold_ordered(
+        g.len().div_ceil(BLOCK),
+        1,
+        || (0.0f64, 0u64),
+        |acc, b| {
+            for &x in &g[b * BLOCK..((b + 1) * BLOCK).min(g.len())] {
                 if x.is_finite() {
-                    s += (x as f64) * (x as f64);
+                    acc.0 += (x as f64) * (x as f64);
                 } else {
-                    nf += 1;
+                    acc.1 += 1;
                 }
             }
-            (s, nf)
-        })
-        .reduce(|| (0.0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
+        },
+        |a, b| {
+            a.0 += b.0;
+            a.1 += b.1;
+        },
+    )
 }
 
 #[cfg(test)]

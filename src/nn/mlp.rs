@@ -952,27 +952,34 @@ pub fn cpu_backward<T: Real>(
     }
     let (d, o) = (mlp.config.in_dim, mlp.config.out_dim);
     let mut dx = vec![T::zero(); n * d];
-    let dd = cache
+    // The parameter gradient is summed over row chunks in fixed groups, merged in order, so that
+    // its rounding (and a seeded run) repeats on any thread count: rayon's fold splits where
+    // threads steal. At most MAX_PARTIALS group sums are alive at once, fewer for big networks.
+    const MAX_PARTIALS: usize = 64;
+    const PARTIAL_BYTES: usize = 64 << 20;
+    let partials = (PARTIAL_BYTES / (mlp.num_dense * std::mem::size_of::<T>()).max(1)).clamp(1, MAX_PARTIALS);
+    let per = cache.chunks.len().div_ceil(partials).max(1);
+    let sums: Vec<Vec<T>> = cache
         .chunks
-        .par_iter()
-        .zip(dx.par_chunks_mut(CPU_CHUNK_ROWS * d))
-        .zip(dy.par_chunks(CPU_CHUNK_ROWS * o))
-        .fold(
-            || vec![T::zero(); mlp.num_dense],
-            |mut dd, ((c, dxc), dyc)| {
+        .par_chunks(per)
+        .zip(dx.par_chunks_mut(per * CPU_CHUNK_ROWS * d))
+        .zip(dy.par_chunks(per * CPU_CHUNK_ROWS * o))
+        .map(|((cs, dxg), dyg)| {
+            let mut dd = vec![T::zero(); mlp.num_dense];
+            let rows = dxg.chunks_mut(CPU_CHUNK_ROWS * d).zip(dyg.chunks(CPU_CHUNK_ROWS * o));
+            for (c, (dxc, dyc)) in cs.iter().zip(rows) {
                 backward_chunk(mlp, &cache.dense, c, dyc, dxc, &mut dd);
-                dd
-            },
-        )
-        .reduce(
-            || vec![T::zero(); mlp.num_dense],
-            |mut a, b| {
-                for (x, y) in a.iter_mut().zip(&b) {
-                    *x += *y;
-                }
-                a
-            },
-        );
+            }
+            dd
+        })
+        .collect();
+    let mut sums = sums.into_iter();
+    let mut dd = sums.next().unwrap_or_else(|| vec![T::zero(); mlp.num_dense]);
+    for b in sums {
+        for (x, y) in dd.iter_mut().zip(&b) {
+            *x += *y;
+        }
+    }
     Ok((dense_to_param_grads(mlp, params, &dd), dx))
 }
 
@@ -1567,6 +1574,31 @@ mod tests {
         assert_eq!(m.layers[1].w, 40);
         assert_eq!(m.layers[1].g, Some(80));
         assert_eq!(m.layers[1].b, 85);
+    }
+
+    #[test]
+    fn backward_gives_the_same_bits_on_any_thread_count() {
+        // 37 row chunks (the last one short): the parameter gradient sums chunks in fixed groups,
+        // so 1, 2, 3 and 8 threads add in the same order. rayon's fold did not.
+        let m = Mlp::new(cfg()).unwrap();
+        let p = m.init(Init::Default, 3);
+        let n = 36 * CPU_CHUNK_ROWS + 517;
+        let x: Vec<f32> = (0..n * 3).map(|i| ((i as f32) * 0.731).sin()).collect();
+        let dy: Vec<f32> = (0..n * 2).map(|i| ((i as f32) * 0.377).cos() * 10f32.powi((i % 7) as i32 - 3)).collect();
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| {
+                let (_, cache) = cpu_forward(&m, &p, &x, true).unwrap();
+                cpu_backward(&m, &p, &cache, &dy).unwrap()
+            })
+        };
+        let (dp1, dx1) = run(1);
+        assert!(dp1.iter().all(|v| v.is_finite()) && dp1.iter().any(|v| *v != 0.0));
+        for t in [2, 3, 8] {
+            let (dp, dx) = run(t);
+            assert!(dp.iter().zip(&dp1).all(|(a, b)| a.to_bits() == b.to_bits()), "{t} threads: dL/dparams differ");
+            assert!(dx.iter().zip(&dx1).all(|(a, b)| a.to_bits() == b.to_bits()), "{t} threads: dL/dx differ");
+        }
     }
 
     #[test]

@@ -337,54 +337,50 @@ pub fn loss_grad_f64(params: &[f64], target: &FitTarget) -> (f64, Vec<f64>) {
         .collect();
     // Per lobe accumulators: [Vx, Vy, Vz, dL/dλ, dL/dμr, dL/dμg, dL/dμb] with
     // V = Σ_p (Σ_c e_pc μ_kc) g_k ω (the axis gradient is λ·(V − a(a·V))/‖ξ‖).
-    let (loss, acc) = target
-        .dir_weight
-        .par_iter()
-        .enumerate()
-        .fold(
-            || (0.0f64, vec![0.0f64; k * PARAMS_PER_LOBE], vec![0.0f64; k]),
-            |(mut loss, mut acc, mut g), (i, p)| {
-                let w = [p[0] as f64, p[1] as f64, p[2] as f64];
-                let mut f = [0.0f64; 3];
-                for (j, l) in lobes.iter().enumerate() {
-                    let cos = l.a[0] * w[0] + l.a[1] * w[1] + l.a[2] * w[2];
-                    g[j] = (l.lambda * (cos - 1.0)).exp();
-                    for c in 0..3 {
-                        f[c] += l.mu[c] * g[j];
-                    }
-                }
-                let mut e = [0.0f64; 3];
+    // Summed in fixed groups merged in order (`util::fold_ordered`): the same bits on any thread
+    // count, so a fit repeats itself.
+    let (loss, acc, _) = crate::util::fold_ordered(
+        target.dir_weight.len(),
+        1024,
+        || (0.0f64, vec![0.0f64; k * PARAMS_PER_LOBE], vec![0.0f64; k]),
+        |(loss, acc, g), i| {
+            let p = &target.dir_weight[i];
+            let w = [p[0] as f64, p[1] as f64, p[2] as f64];
+            let mut f = [0.0f64; 3];
+            for (j, l) in lobes.iter().enumerate() {
+                let cos = l.a[0] * w[0] + l.a[1] * w[1] + l.a[2] * w[2];
+                g[j] = (l.lambda * (cos - 1.0)).exp();
                 for c in 0..3 {
-                    let t = (target.rgb[i * 3 + c] as f64).max(0.0);
-                    let r = f[c].ln_1p() - t.ln_1p();
-                    loss += p[3] as f64 * r * r / 3.0;
-                    e[c] = 2.0 * p[3] as f64 * r / (3.0 * (1.0 + f[c]));
+                    f[c] += l.mu[c] * g[j];
                 }
-                for (j, l) in lobes.iter().enumerate() {
-                    let s = (e[0] * l.mu[0] + e[1] * l.mu[1] + e[2] * l.mu[2]) * g[j];
-                    let cos = l.a[0] * w[0] + l.a[1] * w[1] + l.a[2] * w[2];
-                    let o = j * PARAMS_PER_LOBE;
-                    acc[o] += s * w[0];
-                    acc[o + 1] += s * w[1];
-                    acc[o + 2] += s * w[2];
-                    acc[o + 3] += s * (cos - 1.0);
-                    for c in 0..3 {
-                        acc[o + 4 + c] += e[c] * g[j];
-                    }
+            }
+            let mut e = [0.0f64; 3];
+            for c in 0..3 {
+                let t = (target.rgb[i * 3 + c] as f64).max(0.0);
+                let r = f[c].ln_1p() - t.ln_1p();
+                *loss += p[3] as f64 * r * r / 3.0;
+                e[c] = 2.0 * p[3] as f64 * r / (3.0 * (1.0 + f[c]));
+            }
+            for (j, l) in lobes.iter().enumerate() {
+                let s = (e[0] * l.mu[0] + e[1] * l.mu[1] + e[2] * l.mu[2]) * g[j];
+                let cos = l.a[0] * w[0] + l.a[1] * w[1] + l.a[2] * w[2];
+                let o = j * PARAMS_PER_LOBE;
+                acc[o] += s * w[0];
+                acc[o + 1] += s * w[1];
+                acc[o + 2] += s * w[2];
+                acc[o + 3] += s * (cos - 1.0);
+                for c in 0..3 {
+                    acc[o + 4 + c] += e[c] * g[j];
                 }
-                (loss, acc, g)
-            },
-        )
-        .map(|(l, a, _)| (l, a))
-        .reduce(
-            || (0.0, vec![0.0; k * PARAMS_PER_LOBE]),
-            |(l1, mut a1), (l2, a2)| {
-                for (x, y) in a1.iter_mut().zip(&a2) {
-                    *x += y;
-                }
-                (l1 + l2, a1)
-            },
-        );
+            }
+        },
+        |(l1, a1, _), (l2, a2, _)| {
+            for (x, y) in a1.iter_mut().zip(&a2) {
+                *x += y;
+            }
+            *l1 += l2;
+        },
+    );
     let mut grad = vec![0.0f64; params.len()];
     for (j, l) in lobes.iter().enumerate() {
         let o = j * PARAMS_PER_LOBE;
@@ -478,11 +474,13 @@ pub fn fit_error(env: &EnvSgs, rgb: &[f32], width: usize, height: usize, conv: L
     // Accumulators: 6 sums (see below), then 27 SH coefficients of the map and 27 of the fit.
     const N: usize = 6 + 54;
     let dphi_dtheta = 2.0 * std::f64::consts::PI / width as f64 * std::f64::consts::PI / height as f64;
-    let s = (0..height)
-        .into_par_iter()
-        .map(|y| {
+    // Rows merged in order (`util::fold_ordered`): the same bits on any thread count.
+    let s = crate::util::fold_ordered(
+        height,
+        1,
+        || [0.0f64; N],
+        |s, y| {
             let w = row_weight(y, height);
-            let mut s = [0.0f64; N];
             for x in 0..width {
                 let d = latlong_dir(conv, x, y, width, height);
                 let f = env.eval(d);
@@ -503,17 +501,13 @@ pub fn fit_error(env: &EnvSgs, rgb: &[f32], width: usize, height: usize, conv: L
                     }
                 }
             }
-            s
-        })
-        .reduce(
-            || [0.0; N],
-            |mut a, b| {
-                for (x, y) in a.iter_mut().zip(&b) {
-                    *x += y;
-                }
-                a
-            },
-        );
+        },
+        |a, b| {
+            for (x, y) in a.iter_mut().zip(&b) {
+                *x += y;
+            }
+        },
+    );
     let (mut num, mut den) = (0.0f64, 0.0f64);
     for c in 0..3 {
         for i in 0..9 {
