@@ -17,6 +17,10 @@ fn example_scene_cameras_and_known_points() {
     assert_eq!(scene.format, Format::Transforms);
     assert_eq!(scene.views_in(Split::Train).count(), 24);
     assert_eq!(scene.views_in(Split::Test).count(), 4);
+    // The rendered views agree: no view is excluded, and the worst one carves a sliver alone.
+    let sc = &scene.silhouettes;
+    assert!(sc.excluded.is_empty() && sc.note.is_none(), "{sc:?}");
+    assert!(sc.worst_kept.as_ref().unwrap().1 < 0.2 * pii_bake::scene::consistency::SOLO_CARVE_ABOVE, "{sc:?}");
     let meta: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(example().join("scene.json")).unwrap()).unwrap();
     let probes: Vec<DVec3> = meta["probe_points"]
         .as_array()

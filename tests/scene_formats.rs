@@ -193,7 +193,7 @@ fn nerfstudio_transforms_with_distortion_masks_and_splits() {
         }
     }
     // --downscale 2 on 32x24: intrinsics halve exactly
-    let half = load(d.path(), &ReadOptions { downscale: 2 }).unwrap();
+    let half = load(d.path(), &ReadOptions { downscale: 2, ..Default::default() }).unwrap();
     assert_eq!((half.views[0].camera.width, half.views[0].camera.height), (16, 12));
     assert_eq!(half.views[0].camera.cx, CX / 2.0);
 }

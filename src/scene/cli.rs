@@ -14,6 +14,9 @@ pub struct InfoArgs {
     /// Integer image downscale factor; intrinsics follow.
     #[arg(long, default_value_t = 1)]
     pub downscale: usize,
+    /// Measure the views' silhouette agreement but leave none out.
+    #[arg(long)]
+    pub keep_all_views: bool,
 }
 
 fn stats(v: impl Iterator<Item = f64>) -> Option<(f64, f64, f64)> {
@@ -64,6 +67,7 @@ pub fn summary(scene: &Scene) -> serde_json::Value {
             "views_with_mask": scene.views.iter().filter(|v| v.mask.is_some()).count(),
             "coverage": cov.map(|(a, m, b)| json!({"min": a, "mean": m, "max": b})),
         },
+        "silhouettes": scene.silhouettes,
         "photo_texture": {
             "contrast": texture,
             "textureless": texture.map(|t| t < super::texture::TEXTURELESS_BELOW),
@@ -74,7 +78,7 @@ pub fn summary(scene: &Scene) -> serde_json::Value {
 }
 
 pub fn run(args: &InfoArgs, ctx: &Context) -> anyhow::Result<()> {
-    let scene = load(&args.scene, &ReadOptions { downscale: args.downscale })?;
+    let scene = load(&args.scene, &ReadOptions { downscale: args.downscale, keep_all_views: args.keep_all_views })?;
     let s = summary(&scene);
     ctx.emit("scene_info", s.clone());
     let f3 = |v: &serde_json::Value| -> String {
@@ -108,6 +112,27 @@ pub fn run(args: &InfoArgs, ctx: &Context) -> anyhow::Result<()> {
     ctx.say(format!("camera distance (normalised) {}", f3(&s["camera_distance_normalised"])));
     ctx.say(format!("up axis           [{:.3}, {:.3}, {:.3}] (nearest {})", n.up_axis.x, n.up_axis.y, n.up_axis.z, n.up_axis_name));
     ctx.say(format!("masks             {} views, coverage {}", s["masks"]["views_with_mask"], f3(&s["masks"]["coverage"])));
+    let sc = &scene.silhouettes;
+    match &sc.worst_kept {
+        Some((name, worst)) => ctx.say(format!(
+            "silhouettes       {} views kept: the median view carves {:.2}% of the hull alone, the worst {:.2}% ({name})",
+            sc.views - sc.excluded.len(),
+            100.0 * sc.median_solo_carve,
+            100.0 * worst
+        )),
+        None => ctx.say("silhouettes       - (needs masks on at least 4 views)"),
+    }
+    for e in &sc.excluded {
+        ctx.say(format!(
+            "  EXCLUDED        {} ({}): carves {:.1}% of the others' hull alone: a wrong pose or mask",
+            e.name,
+            e.image,
+            100.0 * e.solo_carve
+        ));
+    }
+    if let Some(note) = &sc.note {
+        ctx.say(format!("  WARNING         {note}"));
+    }
     let pt = &s["photo_texture"];
     ctx.say(match (pt["contrast"].as_f64(), pt["textureless"].as_bool()) {
         (Some(t), Some(true)) => format!("photo texture     {t:.3} (below {}: textureless, albedo and lighting poorly separable)", pt["threshold"]),

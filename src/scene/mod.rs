@@ -25,6 +25,7 @@
 
 pub mod cli;
 pub mod colmap;
+pub mod consistency;
 pub mod idr;
 pub mod llff;
 pub mod normalise;
@@ -132,7 +133,12 @@ impl Camera {
 
     /// Project a normalised-world point to continuous pixel coordinates; `None` if it is behind the camera.
     pub fn project(&self, p: DVec3) -> Option<DVec2> {
-        let q = self.world_from_camera.inverse().transform_point3(p);
+        self.project_camera_point(self.world_from_camera.inverse().transform_point3(p))
+    }
+
+    /// Project a point given in this camera's frame (OpenCV axes) to continuous pixel coordinates;
+    /// `None` if it is behind the camera.
+    pub fn project_camera_point(&self, q: DVec3) -> Option<DVec2> {
         if q.z <= 1e-9 {
             return None;
         }
@@ -244,6 +250,8 @@ pub struct Scene {
     pub source: PathBuf,
     pub views: Vec<View>,
     pub normalisation: Normalisation,
+    /// Silhouette agreement between the views; views it excluded are not in `views`.
+    pub silhouettes: consistency::SilhouetteCheck,
 }
 
 impl Scene {
@@ -257,11 +265,14 @@ impl Scene {
 pub struct ReadOptions {
     /// Integer image downscale factor (1 = full size). Intrinsics follow exactly.
     pub downscale: usize,
+    /// Keep the views whose silhouette contradicts the others (see [`consistency`]); they are
+    /// still measured and named in the report.
+    pub keep_all_views: bool,
 }
 
 impl Default for ReadOptions {
     fn default() -> Self {
-        Self { downscale: 1 }
+        Self { downscale: 1, keep_all_views: false }
     }
 }
 
@@ -341,6 +352,22 @@ pub fn load(path: &Path, opts: &ReadOptions) -> Result<Scene, DataError> {
     files.sort();
     files.dedup();
     let views = load_views(raw, opts.downscale)?;
+    // Views whose mask contradicts all the others (a failed pose or a wrong mask) would cut the
+    // hull, the bound and the mask loss: they are taken out here and reported.
+    let (start, half) = normalise::search_cube(&views, &hint);
+    let (drop, silhouettes) = consistency::check(&views, start, half, !opts.keep_all_views);
+    for e in &silhouettes.excluded {
+        tracing::warn!(
+            "excluded view {} ({}): its silhouette disagrees with the other views (it alone carves {:.1}% of their hull): a wrong pose or a wrong mask",
+            e.name,
+            e.image,
+            100.0 * e.solo_carve
+        );
+    }
+    if let Some(note) = &silhouettes.note {
+        tracing::warn!("{note}");
+    }
+    let views: Vec<View> = views.into_iter().enumerate().filter(|(i, _)| !drop.contains(i)).map(|(_, v)| v).collect();
     let normalisation = normalise::compute(path, &views, &hint)
         .map_err(|e| DataError::new(e.path, format!("{} (cameras from {})", e.problem, files.join(", "))))?;
     let views = views
@@ -350,7 +377,7 @@ pub fn load(path: &Path, opts: &ReadOptions) -> Result<Scene, DataError> {
             v
         })
         .collect();
-    Ok(Scene { format, source: path.to_path_buf(), views, normalisation })
+    Ok(Scene { format, source: path.to_path_buf(), views, normalisation, silhouettes })
 }
 
 fn load_views(raw: Vec<RawView>, n: usize) -> Result<Vec<View>, DataError> {

@@ -75,9 +75,9 @@ pub(crate) fn compute(path: &Path, views: &[View], hint: &BoundHint) -> Result<N
             (c, 1.0 / (r * MARGIN), format!("{}, radius x {MARGIN}", hint.source))
         }
     } else {
-        let axes = closest_point_to_axes(views);
+        let (axes, half) = search_cube(views, hint);
         if views.iter().all(|v| v.mask.is_some()) {
-            let (c, r) = visual_hull_bound(path, views, axes)?;
+            let (c, r) = visual_hull_bound(path, views, axes, half)?;
             (c, 1.0 / (r * MARGIN), format!("visual hull of the masks ({HULL_RES}^3), radius x {MARGIN}"))
         } else {
             let r = views
@@ -94,6 +94,16 @@ pub(crate) fn compute(path: &Path, views: &[View], hint: &BoundHint) -> Result<N
         return Err(DataError::new(path, format!("cannot normalise the scene (centre {center}, scale {scale})")));
     }
     Ok(Normalisation { center, scale, up_axis, up_axis_name, method })
+}
+
+/// A cube (centre, half size; world frame) that holds the object: the bound the format states, or
+/// around the point closest to all optical axes, reaching 95% of the way to the nearest camera.
+pub(crate) fn search_cube(views: &[View], hint: &BoundHint) -> (DVec3, f64) {
+    if let Some((c, r)) = hint.sphere {
+        return (c, if hint.exact_unit_sphere { r } else { r * MARGIN });
+    }
+    let start = closest_point_to_axes(views);
+    (start, 0.95 * views.iter().map(|v| (v.camera.center() - start).length()).fold(f64::INFINITY, f64::min))
 }
 
 /// Mean camera up (−y of OpenCV axes), and the nearest world axis name.
@@ -127,10 +137,9 @@ pub fn closest_point_to_axes(views: &[View]) -> DVec3 {
     }
 }
 
-/// Bounding sphere (centre, radius) of the visual hull, world frame.
-fn visual_hull_bound(path: &Path, views: &[View], start: DVec3) -> Result<(DVec3, f64), DataError> {
+/// Bounding sphere (centre, radius) of the visual hull in the cube `start ± half`, world frame.
+fn visual_hull_bound(path: &Path, views: &[View], start: DVec3, half: f64) -> Result<(DVec3, f64), DataError> {
     use rayon::prelude::*;
-    let half = 0.95 * views.iter().map(|v| (v.camera.center() - start).length()).fold(f64::INFINITY, f64::min);
     let cams: Vec<(DMat4, &View)> = views.iter().map(|v| (v.camera.world_from_camera.inverse(), v)).collect();
     let step = 2.0 * half / HULL_RES as f64;
     let kept: Vec<DVec3> = (0..HULL_RES * HULL_RES * HULL_RES)

@@ -183,7 +183,7 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
     let mut points: Vec<CurvePoint> = Vec::new();
     let mut summary = Vec::new();
     for scene_path in &scenes {
-        let scene = crate::scene::load(scene_path, &ReadOptions { downscale: args.downscale.max(1) })?;
+        let scene = crate::scene::load(scene_path, &ReadOptions { downscale: args.downscale.max(1), ..Default::default() })?;
         let gt_path = ["gt/mesh.obj", "gt/mesh.ply"].iter().map(|r| scene_path.join(r)).find(|p| p.is_file());
         let Some(gt_path) = gt_path else {
             anyhow::bail!("{}: no ground-truth mesh (gt/mesh.obj or gt/mesh.ply) to measure against", scene_path.display());

@@ -59,6 +59,10 @@ pub struct TrainOptions {
     /// Integer image downscale factor.
     #[arg(long, default_value_t = 1)]
     pub downscale: usize,
+    /// Train on every view, even one whose silhouette contradicts the others (a wrong pose or
+    /// mask); by default such a view is left out and named.
+    #[arg(long)]
+    pub keep_all_views: bool,
     /// Steps of the hull init's fit (default: the preset's).
     #[arg(long)]
     pub init_steps: Option<u64>,
@@ -299,7 +303,7 @@ pub fn train_stage1(
     if opts.downscale == 0 {
         anyhow::bail!("--downscale must be >= 1");
     }
-    let scene = crate::scene::load(scene_path, &ReadOptions { downscale: opts.downscale })?;
+    let scene = crate::scene::load(scene_path, &ReadOptions { downscale: opts.downscale, keep_all_views: opts.keep_all_views })?;
     let (views, held) = train_views(&scene);
     if views.is_empty() {
         return Err(DataError::new(scene_path, "the scene has no views").into());
@@ -317,6 +321,7 @@ pub fn train_stage1(
 
     let mut cfg = Stage1Config::for_scene(preset, opts.tracing, opts.init, &views, held.len(), opts.downscale);
     cfg.seed = opts.seed;
+    cfg.keep_all_views = opts.keep_all_views;
     if let Some(n) = opts.iterations {
         cfg.iterations = n;
     }
@@ -477,7 +482,7 @@ pub fn train_stage1(
         "tracing": cfg.trace.mode,
         "init": cfg.init,
         "backend": backend.describe(),
-        "scene": { "path": scene_path.display().to_string(), "format": scene.format.name(), "train_views": views.len(), "held_out_views": held.len(), "key": key },
+        "scene": { "path": scene_path.display().to_string(), "format": scene.format.name(), "train_views": views.len(), "held_out_views": held.len(), "key": key, "silhouettes": scene.silhouettes },
         "sizes": cfg.sizes,
         "config": cfg,
         "steps": trainer.step,
@@ -850,7 +855,7 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
         Some(s2) => super::material::export_stage2(&backend, &run.trainer, s2, &run.run_scene, &args.asset, &name, ctx)?,
     };
     let seconds_export = t.elapsed().as_secs_f64();
-    let scene = crate::scene::load(&args.scene, &ReadOptions { downscale: args.train.downscale.max(1) })?;
+    let scene = crate::scene::load(&args.scene, &ReadOptions { downscale: args.train.downscale.max(1), keep_all_views: args.train.keep_all_views })?;
     let gt = super::preview::ground_truth_metrics(
         &args.scene,
         scene.normalisation.center,

@@ -166,7 +166,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     crate::export::check_writable(run_dir)?;
     let s1 = load_stage1(run_dir, None)?;
     let downscale = s1.trainer.cfg.downscale.max(1);
-    let scene = crate::scene::load(scene_path, &ReadOptions { downscale })?;
+    let scene = crate::scene::load(scene_path, &ReadOptions { downscale, keep_all_views: s1.trainer.cfg.keep_all_views })?;
     let (views, held) = train_views(&scene);
     let key = scene_key(&scene, &views);
     if key != s1.run_scene.key {

@@ -236,7 +236,7 @@ pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
         maps.push((stem, lobes, fit.seconds));
     }
     let scene_path = args.cameras.clone().unwrap_or_else(|| s1.run_scene.scene.clone());
-    let scene = crate::scene::load(&scene_path, &ReadOptions { downscale: 1 })?;
+    let scene = crate::scene::load(&scene_path, &ReadOptions::default())?;
     let mut views: Vec<&View> = scene.views_in(Split::Test).collect();
     if views.is_empty() {
         views = scene.views_in(Split::Val).collect();

@@ -188,6 +188,9 @@ pub struct Stage1Config {
     pub seed: u64,
     pub checkpoint_every: u64,
     pub downscale: usize,
+    /// The scene was read with `--keep-all-views` (stage 2 reads it the same way).
+    #[serde(default)]
+    pub keep_all_views: bool,
     pub sizes: SceneSizes,
 }
 
@@ -281,6 +284,7 @@ impl Stage1Config {
             seed: 0,
             checkpoint_every: 100,
             downscale,
+            keep_all_views: false,
             sizes,
         };
         match preset {
