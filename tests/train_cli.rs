@@ -288,6 +288,7 @@ fn a_view_with_a_wrong_pose_is_excluded_named_and_reported() {
     assert!(o.status.success(), "{}", text(&o));
     let out = text(&o);
     assert!(out.contains("excluded view r_005") && out.contains("r_005.png") && out.contains("wrong pose"), "{out}");
+    assert!(!out.contains('\x1b'), "no colour escape codes when the output is not a terminal: {out:?}");
     let run = dir.path().join("run");
     let o = pii(&["train", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--rays", "96", "--downscale", "4", "--init-steps", "20", "--iterations", "2"]);
     assert!(o.status.success(), "{}", text(&o));
