@@ -56,3 +56,49 @@ fn example_scene_cameras_and_known_points() {
     let r = mesh.positions.iter().map(|p| n.to_normalised(*p).length()).fold(0.0, f64::max);
     assert!(r <= 1.0 / normalise::MARGIN + 1e-5 && r > 0.85, "{r}");
 }
+
+#[test]
+fn a_view_where_the_object_is_cropped_does_not_shrink_the_bound() {
+    // The example without its scene.json bound (so the masks' visual hull sets the normalisation),
+    // and a copy where three training views keep only the left 110 of their 200 columns (same
+    // intrinsics): the object runs out of their frames. A view must not reject what it cannot
+    // see, or the bound shrinks and the object leaves the unit sphere. Neither may it exclude
+    // those views as disagreeing.
+    let dir = tempfile::tempdir().unwrap();
+    let copy = |dst: &Path| {
+        for sub in ["train", "test"] {
+            std::fs::create_dir_all(dst.join(sub)).unwrap();
+            for e in std::fs::read_dir(example().join(sub)).unwrap() {
+                let e = e.unwrap();
+                std::fs::copy(e.path(), dst.join(sub).join(e.file_name())).unwrap();
+            }
+        }
+        for f in ["transforms_train.json", "transforms_test.json"] {
+            std::fs::copy(example().join(f), dst.join(f)).unwrap();
+        }
+    };
+    let (full, cropped) = (dir.path().join("full"), dir.path().join("cropped"));
+    copy(&full);
+    copy(&cropped);
+    let tf = cropped.join("transforms_train.json");
+    let mut j: serde_json::Value = serde_json::from_slice(&std::fs::read(&tf).unwrap()).unwrap();
+    let fx = 100.0 / (0.5 * j["camera_angle_x"].as_f64().unwrap()).tan();
+    for k in [3, 9, 15] {
+        let frame = &mut j["frames"][k];
+        let png = cropped.join(format!("{}.png", frame["file_path"].as_str().unwrap()));
+        let img = image::open(&png).unwrap().crop_imm(0, 0, 110, 200);
+        img.save(&png).unwrap();
+        for (key, v) in [("fl_x", fx), ("fl_y", fx), ("cx", 100.0), ("cy", 100.0), ("w", 110.0), ("h", 200.0)] {
+            frame[key] = serde_json::json!(v);
+        }
+    }
+    std::fs::write(&tf, serde_json::to_vec_pretty(&j).unwrap()).unwrap();
+    let a = load(&full, &ReadOptions::default()).unwrap();
+    let b = load(&cropped, &ReadOptions::default()).unwrap();
+    assert!(a.normalisation.method.contains("visual hull"), "{}", a.normalisation.method);
+    assert_eq!(b.views.iter().filter(|v| v.camera.width == 110).count(), 3);
+    assert!(b.silhouettes.excluded.is_empty(), "{:?}", b.silhouettes);
+    let (na, nb) = (&a.normalisation, &b.normalisation);
+    assert!((na.center - nb.center).length() * na.scale < 0.01, "centre {} vs {}", na.center, nb.center);
+    assert!((nb.scale / na.scale - 1.0).abs() < 0.01, "scale {} vs {}", na.scale, nb.scale);
+}

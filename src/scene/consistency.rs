@@ -51,14 +51,10 @@ pub struct SilhouetteCheck {
     pub note: Option<String>,
 }
 
-struct Projector {
-    cam_from_world: DMat4,
-}
-
-/// -1: the view does not see the point (behind the camera or outside the image); 0: background;
-/// 1: foreground.
-fn verdict(v: &View, pr: &Projector, p: DVec3) -> i8 {
-    let q = pr.cam_from_world.transform_point3(p);
+/// What view `v` (with its inverse pose `cam_from_world`) says of world point `p`: -1 it does not
+/// see it (behind the camera or outside the image), 0 background, 1 foreground (mask >= 0.5).
+pub(crate) fn verdict(v: &View, cam_from_world: &DMat4, p: DVec3) -> i8 {
+    let q = cam_from_world.transform_point3(p);
     let Some(px) = v.camera.project_camera_point(q) else { return -1 };
     if px.x < 0.0 || px.y < 0.0 || px.x >= v.camera.width as f64 || px.y >= v.camera.height as f64 {
         return -1;
@@ -68,7 +64,7 @@ fn verdict(v: &View, pr: &Projector, p: DVec3) -> i8 {
 
 /// Per voxel of a `res`³ grid over the cube `centre ± half`: (views that see it, views that reject
 /// it, the first view that rejects it).
-fn count(views: &[&View], prs: &[Projector], centre: DVec3, half: f64, res: usize) -> Vec<(u16, u16, u16)> {
+fn count(views: &[&View], prs: &[DMat4], centre: DVec3, half: f64, res: usize) -> Vec<(u16, u16, u16)> {
     let step = 2.0 * half / res as f64;
     (0..res * res * res)
         .into_par_iter()
@@ -108,15 +104,18 @@ pub fn check(views: &[View], start: DVec3, half: f64, exclude: bool) -> (Vec<usi
     let max_excluded = if exclude { ((idx.len() as f64) * MAX_EXCLUDED_FRACTION).floor() as usize } else { 0 };
     loop {
         let vs: Vec<&View> = kept.iter().map(|&i| &views[i]).collect();
-        let prs: Vec<Projector> =
-            vs.iter().map(|v| Projector { cam_from_world: v.camera.world_from_camera.inverse() }).collect();
+        let prs: Vec<DMat4> = vs.iter().map(|v| v.camera.world_from_camera.inverse()).collect();
+        // Only voxels that at least half of the views see count: the object is in nearly every
+        // frame, while far corners of the search cube are seen by a few views and rejected by
+        // fewer, which would pass for agreement.
+        let min_seen = (vs.len() / 2).max(2) as u16;
         // The box: voxels that at most a fifth of the views reject (so a few bad views cannot cut it).
         let tol = (vs.len() / 5).max(1) as u16;
         let coarse = count(&vs, &prs, start, half, COARSE_RES);
         let cstep = 2.0 * half / COARSE_RES as f64;
         let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
         for (i, &(seen, bg, _)) in coarse.iter().enumerate() {
-            if seen >= 2 && bg <= tol {
+            if seen >= min_seen && bg <= tol {
                 let (x, y, z) = (i % COARSE_RES, (i / COARSE_RES) % COARSE_RES, i / (COARSE_RES * COARSE_RES));
                 let p = start - DVec3::splat(half) + DVec3::new(x as f64 + 0.5, y as f64 + 0.5, z as f64 + 0.5) * cstep;
                 lo = lo.min(p);
@@ -130,10 +129,10 @@ pub fn check(views: &[View], start: DVec3, half: f64, exclude: bool) -> (Vec<usi
         let centre = 0.5 * (lo + hi);
         let fine_half = 0.5 * (hi - lo).max_element() + cstep;
         let fine = count(&vs, &prs, centre, fine_half, RES);
-        let agreed = fine.iter().filter(|&&(seen, bg, _)| seen >= 2 && bg <= 1).count().max(1);
+        let agreed = fine.iter().filter(|&&(seen, bg, _)| seen >= min_seen && bg <= 1).count().max(1);
         let mut solo = vec![0usize; vs.len()];
         for &(seen, bg, first) in &fine {
-            if seen >= 2 && bg == 1 {
+            if seen >= min_seen && bg == 1 {
                 solo[first as usize] += 1;
             }
         }

@@ -4,8 +4,9 @@
 //! 1. a bound the format states (IDR/DTU `scale_mat`: the unit sphere it maps is used as is; a generated
 //!    scene's `scene.json` bound: radius × 1.1 maps to 1);
 //! 2. the visual hull of the masks (64³ voxels in a cube around the point closest to all optical axes;
-//!    a voxel survives if it projects inside the image and the mask (≥ 0.5) in every view): the hull's
-//!    bounding-box centre, and its bounding radius × 1.1 maps to 1;
+//!    a voxel survives if at least half of the views see it and every view that sees it puts it inside
+//!    its mask (≥ 0.5); a view whose frame it falls outside, where the object is cropped, does not
+//!    count): the hull's bounding-box centre, and its bounding radius × 1.1 maps to 1;
 //! 3. no masks: the point closest to all optical axes, and the largest sphere around it that every
 //!    camera sees whole (distance · sin(half the smaller field of view)).
 
@@ -142,21 +143,23 @@ fn visual_hull_bound(path: &Path, views: &[View], start: DVec3, half: f64) -> Re
     use rayon::prelude::*;
     let cams: Vec<(DMat4, &View)> = views.iter().map(|v| (v.camera.world_from_camera.inverse(), v)).collect();
     let step = 2.0 * half / HULL_RES as f64;
+    let min_seen = (views.len() / 2).max(1);
     let kept: Vec<DVec3> = (0..HULL_RES * HULL_RES * HULL_RES)
         .into_par_iter()
         .filter_map(|i| {
             let (x, y, z) = (i % HULL_RES, (i / HULL_RES) % HULL_RES, i / (HULL_RES * HULL_RES));
             let p = start - DVec3::splat(half) + DVec3::new(x as f64 + 0.5, y as f64 + 0.5, z as f64 + 0.5) * step;
-            let inside = cams.iter().all(|(cam_from_world, v)| {
-                let q = cam_from_world.transform_point3(p);
-                if q.z <= 0.0 {
-                    return false;
+            // A view that does not see the point (outside its frame: the object may be cropped
+            // there) neither keeps nor rejects it.
+            let mut seen = 0;
+            for (cam_from_world, v) in &cams {
+                match super::consistency::verdict(v, cam_from_world, p) {
+                    -1 => {}
+                    0 => return None,
+                    _ => seen += 1,
                 }
-                let c = &v.camera;
-                let (px, py) = (c.fx * q.x / q.z + c.cx, c.fy * q.y / q.z + c.cy);
-                v.mask_at(px, py) >= 0.5
-            });
-            inside.then_some(p)
+            }
+            (seen >= min_seen).then_some(p)
         })
         .collect();
     if kept.is_empty() {
