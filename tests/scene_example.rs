@@ -1,15 +1,15 @@
 //! The bundled example scene (tests/data/example, made by scripts/make_scene.py --scene spot): view counts,
 //! resolution, and projections of known object positions.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use glam::DVec3;
 use pii_bake::eval::mesh::Mesh;
 use pii_bake::scene::{load, normalise, Format, ReadOptions, Split};
 
-fn example() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/example")
-}
+mod common;
+
+use common::{copy_dir, example};
 
 #[test]
 fn example_scene_cameras_and_known_points() {
@@ -67,11 +67,7 @@ fn a_view_where_the_object_is_cropped_does_not_shrink_the_bound() {
     let dir = tempfile::tempdir().unwrap();
     let copy = |dst: &Path| {
         for sub in ["train", "test"] {
-            std::fs::create_dir_all(dst.join(sub)).unwrap();
-            for e in std::fs::read_dir(example().join(sub)).unwrap() {
-                let e = e.unwrap();
-                std::fs::copy(e.path(), dst.join(sub).join(e.file_name())).unwrap();
-            }
+            copy_dir(&example().join(sub), &dst.join(sub));
         }
         for f in ["transforms_train.json", "transforms_test.json"] {
             std::fs::copy(example().join(f), dst.join(f)).unwrap();

@@ -259,15 +259,7 @@ fn a_view_with_a_wrong_pose_is_excluded_named_and_reported() {
     // hull. The scene drops it with a warning naming it, and the run's report records it.
     let dir = tempfile::tempdir().unwrap();
     let scene = dir.path().join("scene");
-    for sub in ["", "train", "test"] {
-        std::fs::create_dir_all(scene.join(sub)).unwrap();
-        for e in std::fs::read_dir(example().join(sub)).unwrap() {
-            let e = e.unwrap();
-            if e.file_type().unwrap().is_file() {
-                std::fs::copy(e.path(), scene.join(sub).join(e.file_name())).unwrap();
-            }
-        }
-    }
+    copy_example(&scene);
     let tf = scene.join("transforms_train.json");
     let mut j: serde_json::Value = serde_json::from_slice(&std::fs::read(&tf).unwrap()).unwrap();
     let frame = j["frames"].as_array_mut().unwrap().iter_mut().find(|f| f["file_path"].as_str().unwrap().ends_with("r_005")).unwrap();

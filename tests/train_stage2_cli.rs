@@ -8,7 +8,7 @@ use std::path::Path;
 
 mod common;
 
-use common::{example, pii, text};
+use common::{copy_dir, example, pii, text};
 
 fn stage1(run: &Path) {
     let ex = example();
@@ -44,16 +44,6 @@ fn train_all_tiny(scene: &Path, run: &Path) -> std::process::Output {
         "train", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--stage", "all", "--rays", "96", "--downscale", "4", "--init-steps", "20", "--iterations", "3",
         "--lobes", "6", "--material-iterations", "4", "--material-batch", "64", "--material-set", "points=600",
     ])
-}
-
-fn copy_dir(src: &Path, dst: &Path) {
-    std::fs::create_dir_all(dst).unwrap();
-    for e in std::fs::read_dir(src).unwrap() {
-        let e = e.unwrap();
-        if e.file_type().unwrap().is_file() {
-            std::fs::copy(e.path(), dst.join(e.file_name())).unwrap();
-        }
-    }
 }
 
 #[test]

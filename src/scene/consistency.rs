@@ -62,15 +62,19 @@ pub(crate) fn verdict(v: &View, cam_from_world: &DMat4, p: DVec3) -> i8 {
     i8::from(v.mask_at(px.x, px.y) >= 0.5)
 }
 
+/// Centre of voxel `i` (x fastest, then y, then z) of a `res`³ grid over the cube `centre ± half`.
+pub(crate) fn voxel_centre(i: usize, res: usize, centre: DVec3, half: f64) -> DVec3 {
+    let (x, y, z) = (i % res, (i / res) % res, i / (res * res));
+    centre - DVec3::splat(half) + DVec3::new(x as f64 + 0.5, y as f64 + 0.5, z as f64 + 0.5) * (2.0 * half / res as f64)
+}
+
 /// Per voxel of a `res`³ grid over the cube `centre ± half`: (views that see it, views that reject
 /// it, the first view that rejects it).
 fn count(views: &[&View], prs: &[DMat4], centre: DVec3, half: f64, res: usize) -> Vec<(u16, u16, u16)> {
-    let step = 2.0 * half / res as f64;
     (0..res * res * res)
         .into_par_iter()
         .map(|i| {
-            let (x, y, z) = (i % res, (i / res) % res, i / (res * res));
-            let p = centre - DVec3::splat(half) + DVec3::new(x as f64 + 0.5, y as f64 + 0.5, z as f64 + 0.5) * step;
+            let p = voxel_centre(i, res, centre, half);
             let (mut seen, mut bg, mut first) = (0u16, 0u16, u16::MAX);
             for (k, (v, pr)) in views.iter().zip(prs).enumerate() {
                 match verdict(v, pr, p) {
@@ -116,15 +120,15 @@ pub fn check(views: &[View], start: DVec3, half: f64, exclude: bool) -> (Vec<usi
         let (mut lo, mut hi) = (DVec3::splat(f64::INFINITY), DVec3::splat(f64::NEG_INFINITY));
         for (i, &(seen, bg, _)) in coarse.iter().enumerate() {
             if seen >= min_seen && bg <= tol {
-                let (x, y, z) = (i % COARSE_RES, (i / COARSE_RES) % COARSE_RES, i / (COARSE_RES * COARSE_RES));
-                let p = start - DVec3::splat(half) + DVec3::new(x as f64 + 0.5, y as f64 + 0.5, z as f64 + 0.5) * cstep;
+                let p = voxel_centre(i, COARSE_RES, start, half);
                 lo = lo.min(p);
                 hi = hi.max(p);
             }
         }
         if !lo.is_finite() {
             report.note = Some("the masks share no region: no view could be singled out".into());
-            return (Vec::new(), SilhouetteCheck { excluded: Vec::new(), ..report });
+            report.excluded.clear();
+            return (Vec::new(), report);
         }
         let centre = 0.5 * (lo + hi);
         let fine_half = 0.5 * (hi - lo).max_element() + cstep;

@@ -147,8 +147,7 @@ fn visual_hull_bound(path: &Path, views: &[View], start: DVec3, half: f64) -> Re
     let kept: Vec<DVec3> = (0..HULL_RES * HULL_RES * HULL_RES)
         .into_par_iter()
         .filter_map(|i| {
-            let (x, y, z) = (i % HULL_RES, (i / HULL_RES) % HULL_RES, i / (HULL_RES * HULL_RES));
-            let p = start - DVec3::splat(half) + DVec3::new(x as f64 + 0.5, y as f64 + 0.5, z as f64 + 0.5) * step;
+            let p = super::consistency::voxel_centre(i, HULL_RES, start, half);
             // A view that does not see the point (outside its frame: the object may be cropped
             // there) neither keeps nor rejects it.
             let mut seen = 0;

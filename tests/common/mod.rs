@@ -47,6 +47,17 @@ pub fn assert_usd_valid(usds: &[PathBuf]) {
 }
 
 /// The bundled example scene.
+/// Copy the files (not the subfolders) of `src` into `dst`, creating it.
+pub fn copy_dir(src: &Path, dst: &Path) {
+    std::fs::create_dir_all(dst).unwrap();
+    for e in std::fs::read_dir(src).unwrap() {
+        let e = e.unwrap();
+        if e.file_type().unwrap().is_file() {
+            std::fs::copy(e.path(), dst.join(e.file_name())).unwrap();
+        }
+    }
+}
+
 pub fn example() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/example")
 }
