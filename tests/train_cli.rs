@@ -7,7 +7,7 @@ use std::path::Path;
 
 mod common;
 
-use common::{example, pii, text};
+use common::{example, pii, text, turn_camera};
 
 const TINY: [&str; 8] = ["--rays", "96", "--downscale", "4", "--init", "sphere", "--seed", "5"];
 
@@ -260,21 +260,7 @@ fn a_view_with_a_wrong_pose_is_excluded_named_and_reported() {
     let dir = tempfile::tempdir().unwrap();
     let scene = dir.path().join("scene");
     copy_example(&scene);
-    let tf = scene.join("transforms_train.json");
-    let mut j: serde_json::Value = serde_json::from_slice(&std::fs::read(&tf).unwrap()).unwrap();
-    let frame = j["frames"].as_array_mut().unwrap().iter_mut().find(|f| f["file_path"].as_str().unwrap().ends_with("r_005")).unwrap();
-    let m: Vec<Vec<f64>> = serde_json::from_value(frame["transform_matrix"].clone()).unwrap();
-    let up = glam::DVec3::new(m[0][1], m[1][1], m[2][1]).normalize();
-    let turn = glam::DMat3::from_axis_angle(up, 5f64.to_radians());
-    let r = turn * glam::DMat3::from_cols_array_2d(&[[m[0][0], m[1][0], m[2][0]], [m[0][1], m[1][1], m[2][1]], [m[0][2], m[1][2], m[2][2]]]);
-    let mut m2 = m.clone();
-    for (c, col) in [r.x_axis, r.y_axis, r.z_axis].iter().enumerate() {
-        for row in 0..3 {
-            m2[row][c] = col[row];
-        }
-    }
-    frame["transform_matrix"] = serde_json::json!(m2);
-    std::fs::write(&tf, serde_json::to_vec_pretty(&j).unwrap()).unwrap();
+    turn_camera(&scene.join("transforms_train.json"), "r_005", 5.0);
 
     let o = pii(&["--json", "info", scene.to_str().unwrap()]);
     assert!(o.status.success(), "{}", text(&o));
@@ -282,9 +268,15 @@ fn a_view_with_a_wrong_pose_is_excluded_named_and_reported() {
     assert!(out.contains("excluded view r_005") && out.contains("r_005.png") && out.contains("wrong pose"), "{out}");
     assert!(!out.contains('\x1b'), "no colour escape codes when the output is not a terminal: {out:?}");
     let run = dir.path().join("run");
-    let o = pii(&["train", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--rays", "96", "--downscale", "4", "--init-steps", "20", "--iterations", "2"]);
+    let tiny = ["--rays", "96", "--init-steps", "20", "--iterations", "3"];
+    let o = pii(&[&["train", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--downscale", "4", "--stop-at", "2"][..], &tiny].concat());
     assert!(o.status.success(), "{}", text(&o));
     assert!(text(&o).contains("excluded view r_005"), "{}", text(&o));
+    // Resumed with other reading flags, the run reads the scene as it started (the same 23 views
+    // at the same size), instead of taking 24 views for another scene.
+    let o = pii(&[&["train", scene.to_str().unwrap(), "--out", run.to_str().unwrap(), "--resume", "--keep-all-views", "--downscale", "2"][..], &tiny].concat());
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("resuming as the run started: --downscale 4") && text(&o).contains("at step 2 of 3"), "{}", text(&o));
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("train_report.json")).unwrap()).unwrap();
     assert_eq!(report["scene"]["train_views"], 23, "{}", report["scene"]);
     let excluded = report["scene"]["silhouettes"]["excluded"].as_array().unwrap();

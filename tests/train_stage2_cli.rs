@@ -109,6 +109,28 @@ fn stage_two_resumes_exactly_exports_and_relights() {
 }
 
 #[test]
+fn a_test_view_left_out_of_training_is_still_relit() {
+    // Test camera r_000 turned 6°: the silhouette check leaves it out of both stages, but relight
+    // renders every test camera it is asked for, so eval finds the view.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene");
+    copy_example(&scene);
+    common::turn_camera(&scene.join("transforms_test.json"), "r_000", 6.0);
+    let run = dir.path().join("run");
+    let o = train_all_tiny(&scene, &run);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("excluded view r_000"), "{}", text(&o));
+    let rel = dir.path().join("relit");
+    let env = example().join("env/sunset.exr");
+    let o = pii(&["relight", run.to_str().unwrap(), "--env", env.to_str().unwrap(), "--lobes", "8", "--max-views", "1", "--out", rel.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("rendering test view(s) r_000 too"), "{}", text(&o));
+    for f in ["test/r_000.png", "test/r_000_relit_sunset.png", "test/r_000_albedo.png"] {
+        assert!(rel.join(f).is_file(), "{f} missing: {}", text(&o));
+    }
+}
+
+#[test]
 fn stage_two_bad_inputs_give_clear_errors() {
     let dir = tempfile::tempdir().unwrap();
     // No stage-1 run.

@@ -252,6 +252,9 @@ pub struct Scene {
     pub normalisation: Normalisation,
     /// Silhouette agreement between the views; views it excluded are not in `views`.
     pub silhouettes: consistency::SilhouetteCheck,
+    /// The views the silhouette check left out, in the same normalised frame: nothing trains on
+    /// them, but a command asked to render a camera (`relight` of a test view) still can.
+    pub excluded: Vec<View>,
 }
 
 impl Scene {
@@ -367,17 +370,17 @@ pub fn load(path: &Path, opts: &ReadOptions) -> Result<Scene, DataError> {
     if let Some(note) = &silhouettes.note {
         tracing::warn!("{note}");
     }
-    let views: Vec<View> = views.into_iter().enumerate().filter(|(i, _)| !drop.contains(i)).map(|(_, v)| v).collect();
+    let (excluded, views): (Vec<_>, Vec<_>) = views.into_iter().enumerate().partition(|(i, _)| drop.contains(i));
+    let views: Vec<View> = views.into_iter().map(|(_, v)| v).collect();
     let normalisation = normalise::compute(path, &views, &hint)
         .map_err(|e| DataError::new(e.path, format!("{} (cameras from {})", e.problem, files.join(", "))))?;
-    let views = views
-        .into_iter()
-        .map(|mut v| {
-            v.camera.world_from_camera = normalisation.camera_to_normalised(v.camera.world_from_camera);
-            v
-        })
-        .collect();
-    Ok(Scene { format, source: path.to_path_buf(), views, normalisation, silhouettes })
+    let to_normalised = |mut v: View| {
+        v.camera.world_from_camera = normalisation.camera_to_normalised(v.camera.world_from_camera);
+        v
+    };
+    let views = views.into_iter().map(to_normalised).collect();
+    let excluded = excluded.into_iter().map(|(_, v)| to_normalised(v)).collect();
+    Ok(Scene { format, source: path.to_path_buf(), views, normalisation, silhouettes, excluded })
 }
 
 fn load_views(raw: Vec<RawView>, n: usize) -> Result<Vec<View>, DataError> {

@@ -303,7 +303,18 @@ pub fn train_stage1(
     if opts.downscale == 0 {
         anyhow::bail!("--downscale must be >= 1");
     }
-    let scene = crate::scene::load(scene_path, &ReadOptions { downscale: opts.downscale, keep_all_views: opts.keep_all_views })?;
+    // A resumed run reads the scene as its first run did (its downscale, the views it left out),
+    // whatever this command's flags say: other views would not be the run's.
+    let resuming = resume && run_dir.join(CHECKPOINT).is_file();
+    let loaded = if resuming { Some(Trainer::load(run_dir, None)?) } else { None };
+    let (downscale, keep_all_views) = match &loaded {
+        Some((t, _)) => (t.cfg.downscale, t.cfg.keep_all_views),
+        None => (opts.downscale, opts.keep_all_views),
+    };
+    if loaded.is_some() && (downscale, keep_all_views) != (opts.downscale, opts.keep_all_views) {
+        ctx.say(format!("resuming as the run started: --downscale {downscale}{}", if keep_all_views { " --keep-all-views" } else { "" }));
+    }
+    let scene = crate::scene::load(scene_path, &ReadOptions { downscale, keep_all_views })?;
     let (views, held) = train_views(&scene);
     if views.is_empty() {
         return Err(DataError::new(scene_path, "the scene has no views").into());
@@ -339,9 +350,10 @@ pub fn train_stage1(
     let mut seconds_init = 0.0;
     let mut hull_report = serde_json::Value::Null;
     let mut mesh_report = serde_json::Value::Null;
-    let resuming = resume && run_dir.join(CHECKPOINT).is_file();
-    let mut trainer = if resuming {
-        let (mut t, _) = Trainer::load(run_dir, Some(&key))?;
+    let mut trainer = if let Some((mut t, trained_on)) = loaded {
+        if trained_on != key {
+            return Err(DataError::new(&run_dir.join(CHECKPOINT), format!("this run was trained on another scene ({trained_on}), not {key}")).into());
+        }
         if t.cfg.preset != preset {
             return Err(DataError::new(
                 &run_dir.join(CHECKPOINT),

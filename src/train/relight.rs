@@ -236,8 +236,17 @@ pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
         maps.push((stem, lobes, fit.seconds));
     }
     let scene_path = args.cameras.clone().unwrap_or_else(|| s1.run_scene.scene.clone());
-    let scene = crate::scene::load(&scene_path, &ReadOptions::default())?;
+    // The views the run left out are left out of the normalisation here too (the frame must be the run's).
+    let scene = crate::scene::load(&scene_path, &ReadOptions { downscale: 1, keep_all_views: s1.trainer.cfg.keep_all_views })?;
     let mut views: Vec<&View> = scene.views_in(Split::Test).collect();
+    // A test camera the silhouette check left out of training is still one the caller asked for.
+    let excluded: Vec<&View> = scene.excluded.iter().filter(|v| v.split == Split::Test).collect();
+    if !excluded.is_empty() {
+        let names: Vec<&str> = excluded.iter().map(|v| v.name.as_str()).collect();
+        ctx.say(format!("relight: rendering test view(s) {} too, which the silhouette check left out of training (their pose or mask disagrees with the other views)", names.join(", ")));
+        views.extend(excluded);
+        views.sort_by(|a, b| a.name.cmp(&b.name));
+    }
     if views.is_empty() {
         views = scene.views_in(Split::Val).collect();
     }

@@ -46,7 +46,6 @@ pub fn assert_usd_valid(usds: &[PathBuf]) {
     assert_eq!(text.lines().filter(|l| l.contains("\"errors\": 0")).count(), usds.len(), "{text}");
 }
 
-/// The bundled example scene.
 /// Copy the files (not the subfolders) of `src` into `dst`, creating it.
 pub fn copy_dir(src: &Path, dst: &Path) {
     std::fs::create_dir_all(dst).unwrap();
@@ -58,6 +57,27 @@ pub fn copy_dir(src: &Path, dst: &Path) {
     }
 }
 
+/// Turn the camera of `view` (a frame of the transforms file `tf` whose file_path ends with it)
+/// `degrees` about its own up axis, its image and mask unchanged, as a failed registration leaves
+/// it: its silhouette then cuts a slab off the other views' hull.
+pub fn turn_camera(tf: &Path, view: &str, degrees: f64) {
+    let mut j: serde_json::Value = serde_json::from_slice(&std::fs::read(tf).unwrap()).unwrap();
+    let frame = j["frames"].as_array_mut().unwrap().iter_mut().find(|f| f["file_path"].as_str().unwrap().ends_with(view)).unwrap();
+    let m: Vec<Vec<f64>> = serde_json::from_value(frame["transform_matrix"].clone()).unwrap();
+    let up = glam::DVec3::new(m[0][1], m[1][1], m[2][1]).normalize();
+    let turn = glam::DMat3::from_axis_angle(up, degrees.to_radians());
+    let r = turn * glam::DMat3::from_cols_array_2d(&[[m[0][0], m[1][0], m[2][0]], [m[0][1], m[1][1], m[2][1]], [m[0][2], m[1][2], m[2][2]]]);
+    let mut m2 = m.clone();
+    for (c, col) in [r.x_axis, r.y_axis, r.z_axis].iter().enumerate() {
+        for row in 0..3 {
+            m2[row][c] = col[row];
+        }
+    }
+    frame["transform_matrix"] = serde_json::json!(m2);
+    std::fs::write(tf, serde_json::to_vec_pretty(&j).unwrap()).unwrap();
+}
+
+/// The bundled example scene.
 pub fn example() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/example")
 }
