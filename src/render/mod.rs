@@ -441,9 +441,10 @@ fn secant(tl: f32, fl: f32, th: f32, fh: f32) -> f32 {
     (tl + fl * (th - tl) / den).clamp(tl.min(th), tl.max(th))
 }
 
-/// Secondary rays: sphere tracing from `t = start_offset` for exactly `steps` steps (the
-/// paper's 10 from 0.01 toward each light lobe). A ray hits when |f| < `threshold` before it
-/// leaves the sphere of radius `bound`. Returns `(hit, t)` per ray.
+/// Secondary rays: sphere tracing from `t = start_offset` for at most `steps` steps (the paper's
+/// 10 from 0.01 toward each light lobe; stage 2 takes more, see `Stage2Config::secondary_steps`).
+/// A ray hits when |f| < `threshold` before it leaves the sphere of radius `bound`; a ray is traced
+/// no further once it has hit or left. Returns `(hit, t)` per ray and the field evaluations spent.
 ///
 /// A ray whose start point is already within the threshold is not a hit: it is its origin's own
 /// surface seen by a ray leaving within ~`threshold/start_offset` rad of the tangent plane
@@ -456,7 +457,7 @@ pub fn trace_secondary(
     steps: usize,
     threshold: f32,
     bound: f32,
-) -> Result<(Vec<bool>, Vec<f32>), BackendError> {
+) -> Result<(Vec<bool>, Vec<f32>, usize), BackendError> {
     let n = rays.len();
     let mut hit = vec![false; n];
     let mut t_out = vec![f32::INFINITY; n];
@@ -491,7 +492,7 @@ pub fn trace_secondary(
         }
         active = next;
     }
-    Ok((hit, t_out))
+    Ok((hit, t_out, evals))
 }
 
 /// The smallest sampled field value along each ray between `t0[i]` and `t1[i]` (`samples`
@@ -651,18 +652,37 @@ mod tests {
         let f = sphere(0.3);
         // From a point on a plane below the sphere, looking up (hits) and sideways (misses).
         let rays = Rays { origins: vec![[0.0, -0.6, 0.0], [0.0, -0.6, 0.0]], dirs: vec![[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]] };
-        let (hit, t) = trace_secondary(&f, &rays, 0.01, 10, 1e-3, 1.0).unwrap();
+        let (hit, t, _) = trace_secondary(&f, &rays, 0.01, 10, 1e-3, 1.0).unwrap();
         assert!(hit[0] && !hit[1]);
         assert!((t[0] - 0.3).abs() < 2e-3, "t {}", t[0]);
         // From the sphere's own surface, 1° above its tangent plane: the start point is within the
         // threshold of the origin's surface, which is not an occluder.
         let a = 1f32.to_radians();
         let grazing = Rays { origins: vec![[0.0, 0.3, 0.0]], dirs: vec![[a.cos(), a.sin(), 0.0]] };
-        let (hit, _) = trace_secondary(&f, &grazing, 0.01, 10, 1e-3, 1.0).unwrap();
+        let (hit, _, _) = trace_secondary(&f, &grazing, 0.01, 10, 1e-3, 1.0).unwrap();
         assert!(!hit[0]);
         let (tm, pm) = min_sdf_along(&f, &rays, &[0.0, 0.0], &[1.2, 0.8], 61, 0.0).unwrap();
         assert!((tm[0] - 0.6).abs() < 0.03, "{tm:?}");
         assert!(pm[1][0] < 0.02, "sideways ray's min is at its start: {pm:?}");
+    }
+
+    #[test]
+    fn a_shallow_secondary_ray_finds_an_occluder_across_a_cavity() {
+        // A floor y = -0.3 and a ball of radius 0.2 at (0.5, -0.1, 0); a ray leaves the floor at
+        // x = -0.5, 8° above it, toward the ball. Near the floor the field only lets it advance
+        // by t·sin 8° a step, so from t = 0.01 the paper's 10 steps end at t ≈ 0.04 and call the
+        // ray open; stage 2's default finds the ball about 0.82 away.
+        let f = |p: &[f32]| {
+            Ok::<_, BackendError>(p.chunks_exact(3).map(|q| (q[1] + 0.3).min(((q[0] - 0.5).powi(2) + (q[1] + 0.1).powi(2) + q[2] * q[2]).sqrt() - 0.2)).collect())
+        };
+        let a = 8f32.to_radians();
+        let rays = Rays { origins: vec![[-0.5, -0.3, 0.0]], dirs: vec![[a.cos(), a.sin(), 0.0]] };
+        let (hit, _, evals) = trace_secondary(&f, &rays, 0.01, 10, 5e-4, 1.0).unwrap();
+        assert!(!hit[0] && evals == 10);
+        let steps = crate::train::stage2::Stage2Config::new(crate::train::stage1::Preset::Fast, 1000).secondary_steps;
+        let (hit, t, evals) = trace_secondary(&f, &rays, 0.01, steps, 5e-4, 1.0).unwrap();
+        assert!(hit[0] && (t[0] - 0.82).abs() < 0.02, "{} steps: hit {} at t {}", steps, hit[0], t[0]);
+        assert!(evals < steps, "the ray stops at its hit: {evals} evaluations");
     }
 
     #[test]

@@ -133,7 +133,8 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
                 seconds_train: f(&rep["seconds"]["train"]),
                 it_per_s: f(&rep["it_per_s"]),
                 cache_evaluations: f(&rep["cache"]["field_evaluations"]),
-                per_batch_evaluations: if mode == IndirectMode::None { 0.0 } else { (cfg.secondary_rays_per_batch() * cfg.secondary_steps) as f64 * r.trainer.step as f64 },
+                // Without the cache every step would trace its secondary rays at the cost measured per ray.
+                per_batch_evaluations: if mode == IndirectMode::None { 0.0 } else { cfg.secondary_rays_per_batch() as f64 * f(&rep["cache"]["steps_per_secondary_ray"]) * r.trainer.step as f64 },
                 blocked_fraction: f(&rep["cache"]["blocked_fraction"]),
                 heldout_psnr: f(&rep["eval"]["psnr"]),
                 albedo_psnr: f64::NAN,

@@ -332,6 +332,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "config": cfg,
         "sizes": { "lobes": cfg.lobes, "lobes_without_energy": idle, "points": cache.len(), "batch": cfg.batch, "parameters": trainer.model.num_params(), "why": why },
         "cache": { "points": cache.len(), "blocked_fraction": cache.blocked_fraction(), "boundary_fraction": cache.boundary_fraction(cfg.boundary_epsilon), "field_evaluations": cache.evaluations, "seconds": seconds_cache, "lobes_retraced": cache.retraced, "seconds_retracing": retrace_s,
+                   "secondary_rays": cache.secondary_rays, "steps_per_secondary_ray": cache.steps_per_secondary_ray(),
                    "rays_per_iteration_without_cache": cfg.secondary_rays_per_batch() },
         "geometry": if cfg.refine_geometry {
             serde_json::json!({ "refined": true, "lr": cfg.lr_geometry, "eikonal_weight": cfg.geometry_eikonal_weight, "cache_rebuilds": geometry_retraces, "retrace_every": cfg.geometry_retrace_every, "last_eikonal": last.eikonal })
@@ -482,7 +483,7 @@ fn relight_points(backend: &Backend, sdf: &Stage1Model, model: &Stage2Model, c: 
         let idx: Vec<usize> = (0..c.len()).filter(|&i| c.n[i][0] * a[0] + c.n[i][1] * a[1] + c.n[i][2] * a[2] > 0.0).collect();
         let rays = Rays { origins: idx.iter().map(|&i| c.x[i]).collect(), dirs: vec![a; idx.len()] };
         let f = |p: &[f32]| sdf.sdf(backend, p);
-        let (hit, t) = trace_secondary(&f, &rays, cfg.secondary_offset, cfg.secondary_steps, cfg.secondary_threshold, 1.0)?;
+        let (hit, t, _) = trace_secondary(&f, &rays, cfg.secondary_offset, cfg.secondary_steps, cfg.secondary_threshold, 1.0)?;
         for (q, &i) in idx.iter().enumerate() {
             if hit[q] {
                 hx.push(rays.at(q, t[q]));
