@@ -351,9 +351,7 @@ pub fn train_stage1(
     let mut hull_report = serde_json::Value::Null;
     let mut mesh_report = serde_json::Value::Null;
     let mut trainer = if let Some((mut t, trained_on)) = loaded {
-        if trained_on != key {
-            return Err(DataError::new(&run_dir.join(CHECKPOINT), format!("this run was trained on another scene ({trained_on}), not {key}")).into());
-        }
+        super::stage1::check_scene(run_dir, &trained_on, &key)?;
         if t.cfg.preset != preset {
             return Err(DataError::new(
                 &run_dir.join(CHECKPOINT),

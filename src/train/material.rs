@@ -93,9 +93,7 @@ pub fn load_stage1(run_dir: &Path, key: Option<&str>) -> Result<Stage1Checked, D
     }
     let run_scene = read_run_scene(run_dir)?;
     if let Some(k) = key {
-        if k != run_scene.key {
-            return Err(DataError::new(&run_dir.join(CHECKPOINT), format!("this run was trained on another scene ({}), not {k}", run_scene.key)));
-        }
+        super::stage1::check_scene(run_dir, &run_scene.key, k)?;
     }
     let (trainer, _) = Trainer::load(run_dir, Some(&run_scene.key))?;
     Ok(Stage1Checked { trainer, run_scene })

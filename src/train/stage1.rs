@@ -1329,9 +1329,7 @@ impl Trainer {
             .and_then(|j| serde_json::from_str(j).map_err(|e| DataError::new(&path, format!("checkpoint configuration: {e}"))))?;
         let scene = st.metadata.get("scene").cloned().unwrap_or_default();
         if let Some(k) = expect_scene {
-            if k != scene {
-                return Err(DataError::new(&path, format!("this run was trained on another scene ({scene}), not {k}")));
-            }
+            check_scene(dir, &scene, k)?;
         }
         let mut t = Trainer::new(cfg).map_err(|e| DataError::new(&path, e.to_string()))?;
         let needs = format!("this run's {} network needs", t.cfg.preset.name());
@@ -1351,6 +1349,14 @@ impl Trainer {
         t.skipped = st.metadata.get("skipped").and_then(|s| s.parse().ok()).unwrap_or(0);
         Ok((t, scene))
     }
+}
+
+/// The error when the stage-1 run in `dir` was trained on scene key `trained_on`, not `expected`.
+pub fn check_scene(dir: &Path, trained_on: &str, expected: &str) -> Result<(), DataError> {
+    if trained_on == expected {
+        return Ok(());
+    }
+    Err(DataError::new(&dir.join(CHECKPOINT), format!("this run was trained on another scene ({trained_on}), not {expected}")))
 }
 
 /// A checkpoint tensor that must exist, hold `len` values and be finite; the errors name the file
