@@ -5,8 +5,9 @@
 
 use pii_bake::backend::Backend;
 use pii_bake::nn::field::Encoder;
+use pii_bake::sg::shade::Sg;
 use pii_bake::train::stage1::Preset;
-use pii_bake::train::stage2::{boundary_visibility, loss_and_grad, loss_and_grad_geometry, BoundaryMode, DecoderMode, IndirectMode, RoughnessMode, Stage2Batch, Stage2Config, Stage2Grads, Stage2Model, Stage2Trainer, Stage2Weights};
+use pii_bake::train::stage2::{boundary_visibility, loss_and_grad, loss_and_grad_geometry, BoundaryMode, DecoderMode, IndirectMix, IndirectMode, RoughnessMode, Stage2Batch, Stage2Config, Stage2Grads, Stage2Model, Stage2Trainer, Stage2Weights};
 
 fn tiny(indirect: IndirectMode, decoder: DecoderMode) -> Stage2Config {
     let mut c = Stage2Config::new(Preset::Fast, 1000);
@@ -112,6 +113,30 @@ fn check_config(cfg: Stage2Config) {
 #[test]
 fn whole_loss_gradient_matches_central_differences_with_indirect() {
     check_all(IndirectMode::Ours, DecoderMode::Separate);
+    // A run from before F_ind gave the occluder's reflectance: K outputs only.
+    let mut old = tiny(IndirectMode::Ours, DecoderMode::Separate);
+    old.occluder_reflectance = false;
+    assert_eq!(old.indirect_mlp().out_dim, old.lobes);
+    check_config(old);
+}
+
+#[test]
+fn a_dark_occluder_re_emits_less_than_the_dimmest_lobe() {
+    let lobe = |mu: f64, z: f64| Sg { axis: [0.0, 0.0, z], lambda: 10.0, mu: [mu; 3] };
+    let lobes = [lobe(2.0, 1.0), lobe(1.0, -1.0)];
+    // F_ind's sigmoid row: two weights (normalised to 1/4, 3/4), then ρ per channel.
+    let (mix, sums) = IndirectMix::from_sigmoid(&[0.2, 0.6, 0.5, 0.1, 1.0], 2, 3);
+    assert!((sums[0] - 0.8).abs() < 1e-6 && (mix.row(0)[0] - 0.25).abs() < 1e-6);
+    let r = mix.lobe(&lobes, 1, 0);
+    let plain = 0.25 * 2.0 + 0.75 * 1.0;
+    for (c, rho) in [0.5, 0.1, 1.0].iter().enumerate() {
+        assert!((r.mu[c] - rho * plain).abs() < 1e-6, "channel {c}: {} vs {}", r.mu[c], rho * plain);
+    }
+    assert!(r.mu[1] < 1.0, "darker than the dimmest environment lobe");
+    assert_eq!(r.axis, lobes[1].axis);
+    // Without reflectance outputs (uniform, old runs) ρ is 1: the paper's mixture.
+    let (plain_mix, _) = IndirectMix::from_sigmoid(&[0.2, 0.6], 2, 0);
+    assert!((plain_mix.lobe(&lobes, 1, 0).mu[0] - plain).abs() < 1e-6);
 }
 
 #[test]
@@ -496,8 +521,11 @@ fn wgpu_matches_cpu_on_the_refined_geometry_gradient() {
     let w = weights();
     let (a, c) = (loss_and_grad_geometry(&cpu, &model, &bb, &w, 7, &sdf).unwrap(), loss_and_grad_geometry(&gpu, &model, &bb, &w, 7, &sdf).unwrap());
     assert!((a.stats.loss - c.stats.loss).abs() < 1e-5 * (1.0 + a.stats.loss.abs()), "{} vs {}", a.stats.loss, c.stats.loss);
+    // The colour term's derivative along each ray is a central difference over 2·5e-4 of two f32
+    // renders (material and F_ind on the backend), so it carries their rounding times ~1e3: the worst
+    // entry differs by 2.4e-3 of the largest (5e-5 with that term left out).
     let scale = a.d_sdf.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-6);
     for (i, (p, q)) in a.d_sdf.iter().zip(&c.d_sdf).enumerate() {
-        assert!((p - q).abs() <= 2e-3 * scale + 1e-6, "d_sdf[{i}]: cpu {p} vs wgpu {q}");
+        assert!((p - q).abs() <= 5e-3 * scale + 1e-6, "d_sdf[{i}]: cpu {p} vs wgpu {q}");
     }
 }

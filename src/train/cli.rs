@@ -63,7 +63,8 @@ pub struct TrainOptions {
     /// mask); by default such a view is left out and named.
     #[arg(long)]
     pub keep_all_views: bool,
-    /// Steps of the hull init's fit (default: the preset's).
+    /// Steps of the init's fit to the hull or to `--init-mesh` (default: the preset's, 200 for the
+    /// hull, 600 for a mesh).
     #[arg(long)]
     pub init_steps: Option<u64>,
     /// Fit the SDF to this mesh (.obj/.ply, in the scene's frame: a scan or a ground-truth mesh)
@@ -344,6 +345,7 @@ pub fn train_stage1(
     }
     if let Some(n) = opts.init_steps {
         cfg.hull_fit_steps = n;
+        cfg.mesh_fit_steps = n;
     }
     let cfg = super::stage1::apply_overrides(cfg, &opts.geometry_set)?;
     let mut curve: Vec<String> = Vec::new();
@@ -391,12 +393,12 @@ pub fn train_stage1(
             if inside == 0 {
                 return Err(DataError::new(mesh_path, "no grid voxel lies inside the mesh (is it closed?)").into());
             }
-            let pb = ctx.progress(cfg.hull_fit_steps, "mesh init");
-            let err = t.fit_to_grid(backend, &grid, cfg.hull_fit_steps, |s, _| pb.set_position(s + 1))?;
+            let pb = ctx.progress(cfg.mesh_fit_steps, "mesh init");
+            let err = t.fit_to_grid(backend, &grid, cfg.mesh_fit_steps, |s, _| pb.set_position(s + 1))?;
             pb.finish_and_clear();
             seconds_init = ti.elapsed().as_secs_f64();
-            mesh_report = serde_json::json!({ "mesh": mesh_path.display().to_string(), "triangles": mesh.triangles.len(), "resolution": res, "voxels_inside": inside, "fit_steps": cfg.hull_fit_steps, "fit_loss": err, "seconds": seconds_init });
-            ctx.say(format!("mesh init: {} ({} triangles) as a {res}^3 signed distance, {} fit steps, loss {err:.5} [{seconds_init:.1} s]", mesh_path.display(), mesh.triangles.len(), cfg.hull_fit_steps));
+            mesh_report = serde_json::json!({ "mesh": mesh_path.display().to_string(), "triangles": mesh.triangles.len(), "resolution": res, "voxels_inside": inside, "fit_steps": cfg.mesh_fit_steps, "fit_loss": err, "seconds": seconds_init });
+            ctx.say(format!("mesh init: {} ({} triangles) as a {res}^3 signed distance, {} fit steps, loss {err:.5} [{seconds_init:.1} s]", mesh_path.display(), mesh.triangles.len(), cfg.mesh_fit_steps));
         } else if cfg.init == InitMode::Hull {
             let ti = Instant::now();
             if views.iter().any(|v| v.mask.is_none()) {

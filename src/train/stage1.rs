@@ -100,6 +100,10 @@ pub struct Stage1Config {
     pub trace: TraceConfig,
     pub init: InitMode,
     pub hull_fit_steps: u64,
+    /// Steps of the fit to a given mesh (`train --init-mesh`): it is the geometry, kept as fitted
+    /// with `lr_field = 0`, so it is fitted closer than the hull (which training then reshapes).
+    #[serde(default = "default_mesh_fit_steps")]
+    pub mesh_fit_steps: u64,
     /// Points per hull-fit step (half near the hull's surface, half uniform).
     #[serde(default = "default_hull_fit_points")]
     pub hull_fit_points: usize,
@@ -232,6 +236,10 @@ impl Stage1Config {
             trace,
             init,
             hull_fit_steps: 200,
+            // 200 -> 600 steps on the scenes' ground-truth meshes (96^3 distance grid, frozen
+            // geometry): fit loss bowl 0.0089 -> 0.0029, example 0.0011 -> 0.0006; held-out mask IoU
+            // bowl 0.912 -> 0.992 (its thin walls), example 0.992 -> 0.996.
+            mesh_fit_steps: default_mesh_fit_steps(),
             hull_fit_points: default_hull_fit_points(),
             hull_fit_lr: default_hull_fit_lr(),
             // Run files written before this field existed read it as 1.0 (the constant rate they
@@ -432,6 +440,9 @@ fn default_volume_sharpness() -> [f32; 2] {
 }
 fn default_volume_mask_weight() -> f32 {
     1.0
+}
+fn default_mesh_fit_steps() -> u64 {
+    600
 }
 fn default_hull_fit_points() -> usize {
     2048

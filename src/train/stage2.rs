@@ -14,7 +14,9 @@
 //!   it hits or leaves, at most `secondary_steps`: 48, not the paper's 10, which miss most
 //!   occluders). Where it hits x' (normal n'), `F_ind(PE10(x'), PE4(n'))` → K sigmoid weights,
 //!   L1-normalised, mix the environment lobes into the lobe that replaces lobe k:
-//!   axis ξ_k, `λ = Σ w_j λ_j`, `μ = Σ w_j μ_j`. Baselines on the same data: `none` (no
+//!   axis ξ_k, `λ = Σ w_j λ_j`, `μ = ρ·Σ w_j μ_j`, ρ the occluder's reflectance from 3 more sigmoid
+//!   outputs of F_ind (ours, not the paper's: its mixture is never dimmer than its dimmest lobe,
+//!   where a dark occluder re-emits less than any). Baselines on the same data: `none` (no
 //!   occlusion at all, PhySG-like; with [`RoughnessMode::Constant`] one roughness for the object),
 //!   `uniform` (`w_j = 1/K`, NeRV-like) and `mii` (MII/InvRender: blocked lobes are dropped and an
 //!   MLP at x gives 24 indirect SGs, fitted by L1 to the stage-1 radiance arriving along every
@@ -145,6 +147,12 @@ pub struct Stage2Config {
     pub latent_dim: usize,
     pub decoder_widths: Vec<usize>,
     pub indirect_widths: Vec<usize>,
+    /// F_ind (`ours`) also gives the occluder's reflectance ρ (3 more sigmoid outputs): the lobe
+    /// replacing a blocked one carries `ρ·Σ w_j μ_j`, so light re-emitted by a dark occluder can be
+    /// dimmer than the dimmest environment lobe (the paper's mixture alone cannot be). Off in runs
+    /// from before it.
+    #[serde(default)]
+    pub occluder_reflectance: bool,
     /// Indirect SGs per point of the `mii` baseline (MII/InvRender: 24).
     #[serde(default = "default_mii_lobes")]
     pub mii_lobes: usize,
@@ -227,6 +235,12 @@ impl Stage2Config {
             latent_dim: 32,
             decoder_widths: vec![64],
             indirect_widths: ind,
+            // `bench material` (32 lobes, ours, 48 secondary steps, 2 relit views), albedo / relit
+            // PSNR without -> with: textureless bowl seed 0 16.91 / 20.87 -> 17.57 / 21.11 dB, seed 1
+            // 16.29 / 20.42 -> 17.00 / 21.08; bowl seed 0 16.26 / 18.07 -> 16.18 / 18.03, seed 1
+            // 16.26 / 17.90 -> 16.46 / 17.92 (roughness MSE 0.042 -> 0.037, 0.071 -> 0.062);
+            // example 26.29 / 27.16 -> 26.32 / 27.14.
+            occluder_reflectance: true,
             mii_lobes: default_mii_lobes(),
             mii_weight: default_mii_weight(),
             points: points.min(foreground_pixels.max(1)),
@@ -371,7 +385,17 @@ impl Stage2Config {
         }
     }
 
-    /// F_ind (`ours`): `[PE(x'), PE(n')] → K` sigmoid weights; the `mii` baseline's net:
+    /// F_ind's reflectance outputs after its K weights: 3 with [`Stage2Config::occluder_reflectance`]
+    /// in `ours`, else 0.
+    pub fn reflectance_outputs(&self) -> usize {
+        if self.indirect == IndirectMode::Ours && self.occluder_reflectance {
+            3
+        } else {
+            0
+        }
+    }
+
+    /// F_ind (`ours`): `[PE(x'), PE(n')] → K` sigmoid weights (and ρ, see [`Self::reflectance_outputs`]); the `mii` baseline's net:
     /// `PE(x) → mii_lobes × 7` raw SG parameters (axis, ln λ, μ as the light's).
     pub fn indirect_mlp(&self) -> MlpConfig {
         if self.indirect == IndirectMode::Mii {
@@ -388,7 +412,7 @@ impl Stage2Config {
         MlpConfig {
             in_dim: self.pos_encoding().out_dim(3) + self.dir_encoding().out_dim(3),
             widths: self.indirect_widths.clone(),
-            out_dim: self.lobes,
+            out_dim: self.lobes + self.reflectance_outputs(),
             activation: Activation::Relu,
             output_activation: Activation::Sigmoid,
             skip_layers: vec![],
@@ -666,29 +690,65 @@ impl Stage2Model {
         Ok(out)
     }
 
-    /// F_ind's normalised weights `[n, K]` at hits: forward only.
-    pub fn indirect_weights(&self, backend: &Backend, hx: &[[f32; 3]], hn: &[[f32; 3]]) -> Result<Vec<f32>, BackendError> {
+    /// F_ind's mixture at hits: forward only.
+    pub fn indirect_mix(&self, backend: &Backend, hx: &[[f32; 3]], hn: &[[f32; 3]]) -> Result<IndirectMix, BackendError> {
         let k = self.cfg.lobes;
-        match self.cfg.indirect {
-            IndirectMode::Ours => {
-                let mut out = Vec::with_capacity(hx.len() * k);
-                for (cx, cn) in hx.chunks(1 << 13).zip(hn.chunks(1 << 13)) {
-                    let inp = self.indirect_input(cx, cn);
-                    let s = backend.to_vec(&backend.mlp_forward(&self.indirect, &backend.upload(&self.ind_params), &backend.from_vec(inp), false)?.output)?;
-                    for row in s.chunks_exact(k) {
-                        let sum: f32 = row.iter().sum::<f32>().max(1e-12);
-                        out.extend(row.iter().map(|v| v / sum));
-                    }
-                }
-                Ok(out)
-            }
-            _ => Ok(vec![1.0 / k as f32; hx.len() * k]),
+        if self.cfg.indirect != IndirectMode::Ours {
+            return Ok(IndirectMix::uniform(hx.len(), k));
         }
+        let mut sig = Vec::with_capacity(hx.len() * (k + self.cfg.reflectance_outputs()));
+        for (cx, cn) in hx.chunks(1 << 13).zip(hn.chunks(1 << 13)) {
+            let inp = self.indirect_input(cx, cn);
+            sig.extend(backend.to_vec(&backend.mlp_forward(&self.indirect, &backend.upload(&self.ind_params), &backend.from_vec(inp), false)?.output)?);
+        }
+        Ok(IndirectMix::from_sigmoid(&sig, k, self.cfg.reflectance_outputs()).0)
     }
 }
 
-/// The lobe replacing lobe `k` at a blocked direction: axis ξ_k, `λ = Σ w_j λ_j`, `μ = Σ w_j μ_j`.
-pub fn mix_lobe(lobes: &[Sg<f64>], k: usize, w: &[f32]) -> Sg<f64> {
+/// F_ind's output at the secondary hits (slots): the normalised mixture weights `[slots, K]` and the
+/// occluder's reflectance ρ per slot (1 where there is none: `uniform`, or
+/// [`Stage2Config::occluder_reflectance`] off).
+#[derive(Clone, Debug, Default)]
+pub struct IndirectMix {
+    pub lobes: usize,
+    pub weights: Vec<f32>,
+    pub reflectance: Vec<[f32; 3]>,
+}
+
+impl IndirectMix {
+    /// Uniform weights `1/K`, ρ = 1.
+    pub fn uniform(slots: usize, k: usize) -> Self {
+        Self { lobes: k, weights: vec![1.0 / k as f32; slots * k], reflectance: vec![[1.0; 3]; slots] }
+    }
+
+    /// From F_ind's sigmoid rows (K weights, then `r` reflectance outputs, 0 or 3): the weights
+    /// L1-normalised, and the sums they were divided by.
+    pub fn from_sigmoid(sig: &[f32], k: usize, r: usize) -> (Self, Vec<f64>) {
+        let rows = sig.chunks_exact(k + r);
+        let sums: Vec<f64> = rows.clone().map(|row| row[..k].iter().map(|&v| v as f64).sum::<f64>().max(1e-12)).collect();
+        let weights = rows.clone().zip(&sums).flat_map(|(row, &s)| row[..k].iter().map(move |&v| (v as f64 / s) as f32)).collect();
+        let reflectance = rows.map(|row| if r == 3 { [row[k], row[k + 1], row[k + 2]] } else { [1.0; 3] }).collect();
+        (Self { lobes: k, weights, reflectance }, sums)
+    }
+
+    /// Slot `s`'s weights.
+    pub fn row(&self, s: usize) -> &[f32] {
+        &self.weights[s * self.lobes..(s + 1) * self.lobes]
+    }
+
+    /// Slot `s`'s reflectance.
+    pub fn rho(&self, s: usize) -> [f64; 3] {
+        self.reflectance[s].map(|v| v as f64)
+    }
+
+    /// The lobe replacing lobe `kk` at slot `s` (see [`mix_lobe`]).
+    pub fn lobe(&self, lobes: &[Sg<f64>], kk: usize, s: usize) -> Sg<f64> {
+        mix_lobe(lobes, kk, self.row(s), self.rho(s))
+    }
+}
+
+/// The lobe replacing lobe `k` at a blocked direction: axis ξ_k, `λ = Σ w_j λ_j`, `μ = ρ·Σ w_j μ_j`.
+pub fn mix_lobe(lobes: &[Sg<f64>], k: usize, w: &[f32], rho: [f64; 3]) -> Sg<f64> {
     let mut lam = 0.0;
     let mut mu = [0.0; 3];
     for (j, l) in lobes.iter().enumerate() {
@@ -698,23 +758,22 @@ pub fn mix_lobe(lobes: &[Sg<f64>], k: usize, w: &[f32]) -> Sg<f64> {
             mu[c] += wj * l.mu[c];
         }
     }
-    Sg { axis: lobes[k].axis, lambda: lam.max(LAMBDA_MIN), mu }
+    Sg { axis: lobes[k].axis, lambda: lam.max(LAMBDA_MIN), mu: [0, 1, 2].map(|c| rho[c] * mu[c]) }
 }
 
 /// The lobes lighting one point: the environment with each blocked lobe `(k, slot)` replaced
-/// (`ours`/`uniform`: by the mixture `weights[slot]` of the environment, see [`mix_lobe`];
+/// (`ours`/`uniform`: by `mix`'s mixture of the environment at that slot, see [`mix_lobe`];
 /// `mii`: dropped), followed by the point's `mii` SGs (`extra`, empty in other modes), followed by
 /// one copy of the environment lobe per boundary light (`vis[slot] > 0`, see
 /// [`boundary_visibility`]): its amplitude times `v`, the replacement's times `1 − v`. `vis` may be
 /// empty (no boundary lights).
-pub fn point_lobes(mode: IndirectMode, lobes: &[Sg<f64>], blocked: &[(usize, usize)], weights: &[f32], extra: &[Sg<f64>], vis: &[f64]) -> Vec<Sg<f64>> {
-    let k = lobes.len();
+pub fn point_lobes(mode: IndirectMode, lobes: &[Sg<f64>], blocked: &[(usize, usize)], mix: &IndirectMix, extra: &[Sg<f64>], vis: &[f64]) -> Vec<Sg<f64>> {
     let mut li = lobes.to_vec();
     let mut copies = Vec::new();
     for &(kk, s) in blocked {
         li[kk] = match mode {
             IndirectMode::Mii => Sg { mu: [0.0; 3], ..lobes[kk] },
-            _ => mix_lobe(lobes, kk, &weights[s * k..(s + 1) * k]),
+            _ => mix.lobe(lobes, kk, s),
         };
         let v = vis.get(s).copied().unwrap_or(0.0);
         if v > 0.0 {
@@ -1049,15 +1108,14 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
     let vis = slot_visibility(model, &lobes, &batch.traced_axes, &slot_lobes, &batch.boundary_offset);
     let vis_v: Vec<f64> = vis.iter().map(|v| v.0).collect();
     let ind_p = backend.upload(&model.ind_params);
-    let (ind_fwd, sig) = if mode == IndirectMode::Ours && slots > 0 {
+    let rk = model.cfg.reflectance_outputs();
+    let (ind_fwd, mix, sums) = if mode == IndirectMode::Ours && slots > 0 {
         let f = backend.mlp_forward(&model.indirect, &ind_p, &backend.from_vec(model.indirect_input(&hx, &hn)), true)?;
-        let s = backend.to_vec(&f.output)?;
-        (Some(f), s)
+        let (mix, sums) = IndirectMix::from_sigmoid(&backend.to_vec(&f.output)?, k, rk);
+        (Some(f), mix, sums)
     } else {
-        (None, vec![1.0f32; slots * k])
+        (None, IndirectMix::uniform(slots, k), Vec::new())
     };
-    let sums: Vec<f64> = sig.chunks_exact(k).map(|r| r.iter().map(|&v| v as f64).sum::<f64>().max(1e-12)).collect();
-    let weights: Vec<f32> = sig.chunks_exact(k).zip(&sums).flat_map(|(r, &s)| r.iter().map(move |&v| (v as f64 / s) as f32)).collect();
     // The `mii` baseline's SGs at every point.
     let (mii_raw, mii_fwd) = match mode {
         IndirectMode::Mii => {
@@ -1087,7 +1145,7 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
     let per: Vec<PointOut> = (0..b)
         .into_par_iter()
         .map(|i| {
-            let li = point_lobes(mode, &lobes, &slot_of[i], &weights, &mii_sgs[i], &vis_v);
+            let li = point_lobes(mode, &lobes, &slot_of[i], &mix, &mii_sgs[i], &vis_v);
             let a = [mat[4 * i] as f64, mat[4 * i + 1] as f64, mat[4 * i + 2] as f64];
             let r = mat[4 * i + 3] as f64;
             let (n, v) = (f64x3(batch.n[i]), f64x3(batch.v[i]));
@@ -1115,7 +1173,7 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
 
     // Light and mixture gradients.
     let mut d_light = vec![0.0f64; k * LIGHT_STRIDE];
-    let mut d_sig = vec![0.0f32; slots * k];
+    let mut d_sig = vec![0.0f32; slots * (k + rk)];
     let mut loss_rgb = 0.0;
     let mut se = 0.0;
     let mut d_mat = vec![0.0f32; b * 4];
@@ -1162,7 +1220,7 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
                 d_light[kk * LIGHT_STRIDE + a] += g[a];
             }
             d_light[kk * LIGHT_STRIDE + 3] += g[3];
-            let mix_mu = if mode == IndirectMode::Mii { [0.0; 3] } else { mix_lobe(&lobes, kk, &weights[s * k..(s + 1) * k]).mu };
+            let mix_mu = if mode == IndirectMode::Mii { [0.0; 3] } else { mix.lobe(&lobes, kk, s).mu };
             let mut d_v = 0.0;
             for c in 0..3 {
                 d_light[kk * LIGHT_STRIDE + 4 + c] += v * g[4 + c];
@@ -1191,21 +1249,29 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
                     d_light[kk * LIGHT_STRIDE + 4 + c] += g[4 + c];
                 }
             } else {
-                let wrow = &weights[s * k..(s + 1) * k];
+                // μ = keep·ρ·Σ w_j μ_j.
+                let (wrow, rho) = (mix.row(s), mix.rho(s));
                 let kp = keep[kk];
+                let gm: [f64; 3] = [0, 1, 2].map(|c| kp * rho[c] * g[4 + c]);
                 let mut dw = vec![0.0f64; k];
+                let mut sum_mu = [0.0f64; 3];
                 for (j, l) in lobes.iter().enumerate() {
                     let wj = wrow[j] as f64;
                     d_light[j * LIGHT_STRIDE + 3] += wj * g[3];
                     for c in 0..3 {
-                        d_light[j * LIGHT_STRIDE + 4 + c] += wj * kp * g[4 + c];
+                        d_light[j * LIGHT_STRIDE + 4 + c] += wj * gm[c];
+                        sum_mu[c] += wj * l.mu[c];
                     }
-                    dw[j] = g[3] * l.lambda + kp * (g[4] * l.mu[0] + g[5] * l.mu[1] + g[6] * l.mu[2]);
+                    dw[j] = g[3] * l.lambda + gm[0] * l.mu[0] + gm[1] * l.mu[1] + gm[2] * l.mu[2];
                 }
                 if mode == IndirectMode::Ours {
+                    let row = s * (k + rk);
                     let wdw: f64 = (0..k).map(|j| wrow[j] as f64 * dw[j]).sum();
                     for j in 0..k {
-                        d_sig[s * k + j] = ((dw[j] - wdw) / sums[s]) as f32;
+                        d_sig[row + j] = ((dw[j] - wdw) / sums[s]) as f32;
+                    }
+                    for c in 0..rk {
+                        d_sig[row + k + c] = (kp * g[4 + c] * sum_mu[c]) as f32;
                     }
                 }
             }
@@ -1809,7 +1875,7 @@ fn render_points_f64(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
     }
     let slot_lobes: Vec<(usize, [f32; 3])> = owner.iter().zip(&hn).map(|(&(_, kk), &n2)| (kk, n2)).collect();
     let vis: Vec<f64> = slot_visibility(model, &lobes, &batch.traced_axes, &slot_lobes, &batch.boundary_offset).iter().map(|v| v.0).collect();
-    let w = if model.cfg.indirect == IndirectMode::Mii { Vec::new() } else { model.indirect_weights(backend, &hx, &hn)? };
+    let mix = model.indirect_mix(backend, &hx, &hn)?;
     let mii = model.mii_lobes_at(backend, &batch.x)?;
     let mut per: Vec<Vec<(usize, usize)>> = vec![Vec::new(); batch.len()];
     for (s, &(i, kk)) in owner.iter().enumerate() {
@@ -1818,7 +1884,7 @@ fn render_points_f64(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
     Ok((0..batch.len())
         .into_par_iter()
         .map(|i| {
-            let li = point_lobes(model.cfg.indirect, &lobes, &per[i], &w, &mii[i], &vis);
+            let li = point_lobes(model.cfg.indirect, &lobes, &per[i], &mix, &mii[i], &vis);
             let (sp, df) = shade_f64(f64x3(albedo[i]), rough[i] as f64, f64x3(batch.n[i]), f64x3(batch.v[i]), &li);
             [0, 1, 2].map(|c| sp[c].max(0.0) + df[c].max(0.0))
         })
