@@ -867,7 +867,8 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
         Some(s2) => super::material::export_stage2(&backend, &run.trainer, s2, &run.run_scene, &args.asset, &name, ctx)?,
     };
     let seconds_export = t.elapsed().as_secs_f64();
-    let scene = crate::scene::load(&args.scene, &ReadOptions { downscale: args.train.downscale.max(1), keep_all_views: args.train.keep_all_views })?;
+    // Read as the run was (a resumed bake keeps the flags it started with): its views, its frame.
+    let scene = crate::scene::load(&args.scene, &ReadOptions { downscale: run.trainer.cfg.downscale.max(1), keep_all_views: run.trainer.cfg.keep_all_views })?;
     let gt = super::preview::ground_truth_metrics(
         &args.scene,
         scene.normalisation.center,
