@@ -395,8 +395,9 @@ impl Stage2Config {
         }
     }
 
-    /// F_ind (`ours`): `[PE(x'), PE(n')] → K` sigmoid weights (and ρ, see [`Self::reflectance_outputs`]); the `mii` baseline's net:
-    /// `PE(x) → mii_lobes × 7` raw SG parameters (axis, ln λ, μ as the light's).
+    /// F_ind (`ours`): `[PE(x'), PE(n')] → K` sigmoid weights (and ρ, see
+    /// [`Self::reflectance_outputs`]); the `mii` baseline's net: `PE(x) → mii_lobes × 7` raw SG
+    /// parameters (axis, ln λ, μ as the light's).
     pub fn indirect_mlp(&self) -> MlpConfig {
         if self.indirect == IndirectMode::Mii {
             return MlpConfig {
