@@ -645,12 +645,14 @@ impl Stage2Model {
         let mut albedo = Vec::with_capacity(x.len());
         let mut rough = Vec::with_capacity(x.len());
         let constant = self.constant_roughness(backend, false)?.map(|(r, _)| r);
+        let enc_p = backend.upload(self.enc_split().1);
+        let dec_p: Vec<_> = self.dec_params.iter().map(|p| backend.upload(p)).collect();
         for c in x.chunks(1 << 14) {
             let enc = self.encode_material(c);
-            let z = backend.mlp_forward(&self.encoder, &backend.upload(self.enc_split().1), &backend.from_vec(enc), false)?;
+            let z = backend.mlp_forward(&self.encoder, &enc_p, &backend.from_vec(enc), false)?;
             let mut mat = vec![0.0f32; c.len() * 4];
-            for ((m, o), p) in self.decoders.iter().zip(&self.dec_params) {
-                let out = backend.to_vec(&backend.mlp_forward(m, &backend.upload(p), &z.output, false)?.output)?;
+            for ((m, o), p) in self.decoders.iter().zip(&dec_p) {
+                let out = backend.to_vec(&backend.mlp_forward(m, p, &z.output, false)?.output)?;
                 let od = m.out_dim();
                 for i in 0..c.len() {
                     mat[4 * i + o..4 * i + o + od].copy_from_slice(&out[od * i..od * (i + 1)]);
@@ -699,31 +701,34 @@ impl Stage2Model {
     pub fn indirect_mix(&self, backend: &Backend, hx: &[[f32; 3]], hn: &[[f32; 3]]) -> Result<IndirectMix, BackendError> {
         let k = self.cfg.lobes;
         if self.cfg.indirect != IndirectMode::Ours {
-            return Ok(IndirectMix::uniform(hx.len(), k));
+            return Ok(IndirectMix::uniform(k));
         }
         let mut sig = Vec::with_capacity(hx.len() * (k + self.cfg.reflectance_outputs()));
+        let params = backend.upload(&self.ind_params);
         for (cx, cn) in hx.chunks(1 << 13).zip(hn.chunks(1 << 13)) {
             let inp = self.indirect_input(cx, cn);
-            sig.extend(backend.to_vec(&backend.mlp_forward(&self.indirect, &backend.upload(&self.ind_params), &backend.from_vec(inp), false)?.output)?);
+            sig.extend(backend.to_vec(&backend.mlp_forward(&self.indirect, &params, &backend.from_vec(inp), false)?.output)?);
         }
         Ok(IndirectMix::from_sigmoid(&sig, k, self.cfg.reflectance_outputs()).0)
     }
 }
 
 /// F_ind's output at the secondary hits (slots): the normalised mixture weights `[slots, K]` and the
-/// occluder's reflectance ρ per slot (1 where there is none: `uniform`, or
-/// [`Stage2Config::occluder_reflectance`] off).
+/// occluder's reflectance ρ per slot. `uniform` holds one row of weights for every slot; ρ is 1
+/// where F_ind gives none (`uniform`, or [`Stage2Config::occluder_reflectance`] off).
 #[derive(Clone, Debug, Default)]
 pub struct IndirectMix {
-    pub lobes: usize,
-    pub weights: Vec<f32>,
-    pub reflectance: Vec<[f32; 3]>,
+    lobes: usize,
+    /// `[slots, K]`, or one row `[K]` shared by every slot.
+    weights: Vec<f32>,
+    /// Per slot; empty: ρ = 1.
+    reflectance: Vec<[f32; 3]>,
 }
 
 impl IndirectMix {
-    /// Uniform weights `1/K`, ρ = 1.
-    pub fn uniform(slots: usize, k: usize) -> Self {
-        Self { lobes: k, weights: vec![1.0 / k as f32; slots * k], reflectance: vec![[1.0; 3]; slots] }
+    /// Uniform weights `1/K` and ρ = 1 at every slot.
+    pub fn uniform(k: usize) -> Self {
+        Self { lobes: k, weights: vec![1.0 / k as f32; k], reflectance: Vec::new() }
     }
 
     /// From F_ind's sigmoid rows (K weights, then `r` reflectance outputs, 0 or 3): the weights
@@ -732,18 +737,19 @@ impl IndirectMix {
         let rows = sig.chunks_exact(k + r);
         let sums: Vec<f64> = rows.clone().map(|row| row[..k].iter().map(|&v| v as f64).sum::<f64>().max(1e-12)).collect();
         let weights = rows.clone().zip(&sums).flat_map(|(row, &s)| row[..k].iter().map(move |&v| (v as f64 / s) as f32)).collect();
-        let reflectance = rows.map(|row| if r == 3 { [row[k], row[k + 1], row[k + 2]] } else { [1.0; 3] }).collect();
+        let reflectance = if r == 3 { rows.map(|row| [row[k], row[k + 1], row[k + 2]]).collect() } else { Vec::new() };
         (Self { lobes: k, weights, reflectance }, sums)
     }
 
     /// Slot `s`'s weights.
     pub fn row(&self, s: usize) -> &[f32] {
+        let s = if self.weights.len() == self.lobes { 0 } else { s };
         &self.weights[s * self.lobes..(s + 1) * self.lobes]
     }
 
     /// Slot `s`'s reflectance.
     pub fn rho(&self, s: usize) -> [f64; 3] {
-        self.reflectance[s].map(|v| v as f64)
+        self.reflectance.get(s).map_or([1.0; 3], |r| r.map(|v| v as f64))
     }
 
     /// The lobe replacing lobe `kk` at slot `s` (see [`mix_lobe`]).
@@ -1119,7 +1125,7 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
         let (mix, sums) = IndirectMix::from_sigmoid(&backend.to_vec(&f.output)?, k, rk);
         (Some(f), mix, sums)
     } else {
-        (None, IndirectMix::uniform(slots, k), Vec::new())
+        (None, IndirectMix::uniform(k), Vec::new())
     };
     // The `mii` baseline's SGs at every point.
     let (mii_raw, mii_fwd) = match mode {
