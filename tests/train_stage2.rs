@@ -226,6 +226,36 @@ fn idle_lobes_are_left_out_of_the_exported_environment() {
 }
 
 #[test]
+fn a_known_light_keeps_its_shape_and_learns_its_exposure() {
+    // `light_fixed` (`--known-env`): photos rendered under light L, training started from 0.5·L
+    // with the material frozen, so only the light can explain them: the axes and sharpness stay
+    // bit for bit, every amplitude moves by one common factor, and that factor comes back to 2.
+    let b = Backend::cpu();
+    let mut cfg = tiny(IndirectMode::Ours, DecoderMode::Separate);
+    cfg.light_fixed = true;
+    cfg.lr_material = 0.0;
+    cfg.lr_indirect = 0.0;
+    cfg.lr_light = 0.02;
+    cfg.lr_final_factor = 1.0;
+    let truth = Stage2Model::new(&cfg).unwrap();
+    let mut batch = batch();
+    batch.target = grads_on(&b, &truth, &batch).rgb.iter().map(|c| c.map(pii_bake::image_io::linear_to_srgb)).collect();
+    let mut t = Stage2Trainer::new(&cfg).unwrap();
+    t.model = truth.clone();
+    t.model.light.chunks_exact_mut(7).for_each(|l| l[4..7].iter_mut().for_each(|m| *m *= 0.5));
+    for step in 0..300 {
+        let g = loss_and_grad(&b, &t.model, &batch, &weights(), step).unwrap();
+        assert!(t.apply(g).unwrap().0);
+    }
+    for (l, l0) in t.model.light.chunks_exact(7).zip(truth.light.chunks_exact(7)) {
+        assert_eq!(l[..4], l0[..4], "axis and sharpness are the map's");
+        for c in 4..7 {
+            assert!((l[c] / l0[c] - 1.0).abs() < 0.02, "amplitude {} of {} after learning the exposure", l[c], l0[c]);
+        }
+    }
+}
+
+#[test]
 fn blocked_lobes_change_the_render() {
     // With F_ind the blocked lobes are replaced: the loss differs from the unoccluded one.
     let b = Backend::cpu();

@@ -348,3 +348,67 @@ fn refined_geometry_trains_resumes_and_exports_the_refined_surface() {
     assert!(o.status.success(), "{}", text(&o));
     assert!(asset.read_dir().unwrap().any(|e| e.unwrap().path().extension().is_some_and(|x| x == "glb")));
 }
+
+/// The brightest pixel's direction of a latlong map (world frame, +Y up) and the map's integral.
+fn peak_and_energy(path: &Path, conv: pii_bake::sg::env::LatlongConvention) -> ([f32; 3], f64) {
+    let m = pii_bake::sg::env::read_latlong_exr(path).unwrap();
+    let (mut best, mut at, mut energy) = (-1.0f32, 0usize, 0.0f64);
+    for p in 0..m.width * m.height {
+        let v = (m.rgb[3 * p] + m.rgb[3 * p + 1] + m.rgb[3 * p + 2]) / 3.0;
+        if v > best {
+            (best, at) = (v, p);
+        }
+        let theta = ((p / m.width) as f64 + 0.5) / m.height as f64 * std::f64::consts::PI;
+        energy += v as f64 * theta.sin() * (2.0 * std::f64::consts::PI / m.width as f64) * (std::f64::consts::PI / m.height as f64);
+    }
+    (pii_bake::sg::env::latlong_dir(conv, at % m.width, at / m.width, m.width, m.height), energy)
+}
+
+#[test]
+fn a_known_light_is_fitted_into_the_run_frame_and_kept_fixed() {
+    // `--known-env`: the capture's own light map, fitted with the stage's lobes in the run's
+    // normalised frame; its shape is never trained, only one exposure. The learnt environment
+    // (written back in the map's layout by relight) peaks where the map does and keeps its energy
+    // (within 25%: a few steps of exposure); 1 and 3 iterations end with the same shape; a resume
+    // must make the same choice; a map that is not an EXR is named.
+    use pii_bake::sg::env::LatlongConvention;
+    let dir = tempfile::tempdir().unwrap();
+    let map = example().join("env/train.exr");
+    let known = ["--known-env", map.to_str().unwrap(), "--known-env-convention", "blender"];
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    stage1(&a);
+    copy_dir(&a, &b);
+    let o = stage2(&a, &[&known[..], &["--material-iterations", "3"]].concat());
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("the light is known"), "{}", text(&o));
+    let o = stage2(&b, &[&known[..], &["--material-iterations", "1"]].concat());
+    assert!(o.status.success(), "{}", text(&o));
+    let light = |run: &Path| pii_bake::train::stage2::Stage2Trainer::load(run, None).unwrap().0.model.light;
+    let (la, lb) = (light(&a), light(&b));
+    // Its shape is kept (axes, sharpness); only one exposure scales every amplitude.
+    let ratio = la[4] / lb[4];
+    for (x, y) in la.chunks_exact(7).zip(lb.chunks_exact(7)) {
+        assert_eq!(x[..4], y[..4], "axis and sharpness are the map's");
+        assert!(x[4..].iter().zip(&y[4..]).all(|(p, q)| (p / q / ratio - 1.0).abs() < 1e-4), "one exposure for all lobes: {x:?} vs {y:?}");
+    }
+    assert_ne!(la, pii_bake::train::stage2::init_light(6, 2), "the known light replaced the initial one");
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("material_report.json")).unwrap()).unwrap();
+    assert_eq!(report["config"]["light_fixed"], true, "{report}");
+
+    let rel = dir.path().join("rel");
+    let o = pii(&["relight", a.to_str().unwrap(), "--env", map.to_str().unwrap(), "--lobes", "6", "--max-views", "1", "--out", rel.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let (want, e_map) = peak_and_energy(&map, LatlongConvention::Blender);
+    let (got, e_fit) = peak_and_energy(&rel.join("env.exr"), LatlongConvention::Blender);
+    let cos = want.iter().zip(&got).map(|(x, y)| x * y).sum::<f32>();
+    assert!(cos > 20f32.to_radians().cos(), "learnt light peaks {:.1}° from the map's peak", cos.clamp(-1.0, 1.0).acos().to_degrees());
+    assert!((e_fit / e_map - 1.0).abs() < 0.25, "energy kept {:.3}", e_fit / e_map);
+
+    let o = stage2(&a, &["--material-iterations", "5", "--resume"]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("material.safetensors") && text(&o).contains("--known-env"), "{}", text(&o));
+    let png = example().join("train/r_000.png");
+    let o = stage2(&b, &["--known-env", png.to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("r_000.png") && text(&o).contains("exr"), "{}", text(&o));
+}

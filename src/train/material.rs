@@ -21,6 +21,7 @@ use crate::export::{AssetArgs, ExportConfig, ExportReport};
 use crate::mesh::field::{MaterialField, MaterialSamples};
 use crate::render::{trace, trace_secondary, Rays, TraceConfig};
 use crate::scene::{Camera, Format, ReadOptions, View};
+use crate::sg::env::LatlongConvention;
 use crate::sg::shade::Sg;
 use crate::util::DataError;
 
@@ -61,11 +62,20 @@ pub struct MaterialOptions {
     /// Stage-2 setting overrides, KEY=VALUE (any field of the stage-2 config), repeatable.
     #[arg(long = "material-set")]
     pub material_set: Vec<String>,
+    /// The capture's lighting, when it was recorded (an on-set HDRI: a latlong .exr in the
+    /// scene's world frame): it is fitted with the stage's SG lobes and kept fixed, so stage 2
+    /// learns only material and indirect light, and light and albedo cannot trade for each other.
+    #[arg(long, value_name = "MAP.exr")]
+    pub known_env: Option<std::path::PathBuf>,
+    /// Latlong layout of `--known-env` (`open-exr-usd`: +Y up, centre along +Z; `blender`: a
+    /// Blender World's).
+    #[arg(long, value_enum, default_value_t = LatlongConvention::OpenExrUsd)]
+    pub known_env_convention: LatlongConvention,
 }
 
 impl Default for MaterialOptions {
     fn default() -> Self {
-        Self { lobes: None, indirect: IndirectMode::Ours, decoder: None, roughness: RoughnessMode::Field, boundary: BoundaryMode::Flowing, refine_geometry: false, material_iterations: None, material_batch: None, material_set: Vec::new() }
+        Self { lobes: None, indirect: IndirectMode::Ours, decoder: None, roughness: RoughnessMode::Field, boundary: BoundaryMode::Flowing, refine_geometry: false, material_iterations: None, material_batch: None, material_set: Vec::new(), known_env: None, known_env_convention: LatlongConvention::OpenExrUsd }
     }
 }
 
@@ -147,8 +157,10 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &s
     if let Some(n) = opts.material_batch {
         cfg.batch = n;
     }
+    cfg.light_fixed = opts.known_env.is_some();
     let cfg = super::stage2::apply_overrides(cfg, &opts.material_set)?;
     let why = serde_json::json!({
+        "light": match &opts.known_env { Some(p) => format!("known: {} ({:?} layout) fitted with the lobes and kept fixed", p.display(), opts.known_env_convention), None => "learnt from the photos".to_string() },
         "lobes": if opts.lobes.is_some() { "forced by --lobes".to_string() } else { format!("{} preset default; lobes left with no energy are reported after training", preset.name()) },
         "decoder": if opts.decoder.is_some() { "forced by --decoder".to_string() } else if synthetic { "separate: a synthetic (transforms.json) scene".to_string() } else { "shared: a real capture (supplementary §5.2)".to_string() },
         "points": format!("min(preset cap, {} masked training pixels)", data.foreground_pixels()),
@@ -190,8 +202,20 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         ctx.say(format!("resuming stage 2 in {} at step {} of {}", run_dir.display(), t.step, t.cfg().iterations));
         (t, traced)
     } else {
-        (Stage2Trainer::new(&cfg)?, Vec::new())
+        let mut t = Stage2Trainer::new(&cfg)?;
+        if let Some(map) = &opts.known_env {
+            // The map is in the scene's world frame; the model's is the run's normalised one.
+            let to_run = DMat3::from_cols_array(&s1.run_scene.rotation).transpose();
+            let (lobes, secs) = super::relight::fit_map_lobes(backend, map, opts.known_env_convention, cfg.lobes, to_run, ctx)?;
+            t.model.set_light(&lobes).map_err(|e| DataError::new(map, e.to_string()))?;
+            ctx.say(format!("stage 2: the light is known: {} fitted with {} lobes [{secs:.1} s], kept fixed", map.display(), lobes.len()));
+        }
+        (t, Vec::new())
     };
+    if resuming && trainer.cfg().light_fixed != opts.known_env.is_some() {
+        let had = if trainer.cfg().light_fixed { "a known (fixed) light" } else { "a learnt light" };
+        return Err(DataError::new(&run_dir.join(CHECKPOINT2), format!("this stage-2 run has {had}: resume it with the same --known-env choice")).into());
+    }
     cfg = trainer.cfg().clone();
     let tc = s1.trainer.cfg.trace.clone();
     // The geometry: stage 1's SDF, refined in place with `--refine-geometry` (a resumed run

@@ -21,7 +21,7 @@ use glam::{DMat3, DVec3};
 
 use super::material::{load_stage1, render_view_lit, RenderedView};
 use super::stage2::{Stage2Trainer, CHECKPOINT2};
-use crate::backend::BackendError;
+use crate::backend::{Backend, BackendError};
 use crate::context::Context;
 use crate::render::{trace, Rays, SdfBatch, TraceConfig};
 use crate::scene::Camera;
@@ -200,6 +200,24 @@ impl Footprint {
 /// Primary rays per axis for a silhouette pixel's alpha.
 pub const EDGE_RAYS: usize = 8;
 
+/// SG lobes fitted to the latlong map at `path` (`fit-env`'s fit, `lobes` of them), their axes
+/// rotated by `to_frame` (a run's asset → normalised rotation), and the fit's seconds.
+pub fn fit_map_lobes(backend: &Backend, path: &Path, convention: LatlongConvention, lobes: usize, to_frame: DMat3, ctx: &Context) -> anyhow::Result<(Vec<Sg<f64>>, f64)> {
+    let map = read_latlong_exr(path)?;
+    let target = FitTarget::from_map(&map.rgb, map.width, map.height, convention, 128);
+    let cfg = FitConfig { lobes, ..Default::default() };
+    let pb = ctx.progress(cfg.iterations as u64, &format!("fitting {}", path.display()));
+    let fit = fit_sgs(backend, &target, &cfg, |i| pb.set_position(i as u64 + 1))?;
+    pb.finish_and_clear();
+    let sgs = fit
+        .env
+        .lobes
+        .iter()
+        .map(|l| Sg { axis: (to_frame * DVec3::from(l.axis.map(f64::from))).to_array(), lambda: l.sharpness as f64, mu: l.amplitude.map(f64::from) })
+        .collect();
+    Ok((sgs, fit.seconds))
+}
+
 pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
     let t_total = Instant::now();
     crate::export::check_writable(&args.out)?;
@@ -219,21 +237,10 @@ pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
     let backend = ctx.backend()?;
     let mut maps: Vec<(String, Vec<Sg<f64>>, f64)> = Vec::new();
     for p in &args.env {
-        let map = read_latlong_exr(p)?;
-        let target = FitTarget::from_map(&map.rgb, map.width, map.height, args.convention, 128);
-        let cfg = FitConfig { lobes: args.lobes, ..Default::default() };
-        let pb = ctx.progress(cfg.iterations as u64, &format!("fitting {}", p.display()));
-        let fit = fit_sgs(&backend, &target, &cfg, |i| pb.set_position(i as u64 + 1))?;
-        pb.finish_and_clear();
-        let lobes: Vec<Sg<f64>> = fit
-            .env
-            .lobes
-            .iter()
-            .map(|l| Sg { axis: (rt * DVec3::from(l.axis.map(f64::from))).to_array(), lambda: l.sharpness as f64, mu: l.amplitude.map(f64::from) })
-            .collect();
+        let (lobes, seconds) = fit_map_lobes(&backend, p, args.convention, args.lobes, rt, ctx)?;
         let stem = p.file_stem().map(|s| s.to_string_lossy().to_string()).unwrap_or_else(|| "env".into());
-        ctx.say(format!("relight: {} fitted with {} lobes [{:.1} s]", p.display(), lobes.len(), fit.seconds));
-        maps.push((stem, lobes, fit.seconds));
+        ctx.say(format!("relight: {} fitted with {} lobes [{seconds:.1} s]", p.display(), lobes.len()));
+        maps.push((stem, lobes, seconds));
     }
     let scene_path = args.cameras.clone().unwrap_or_else(|| s1.run_scene.scene.clone());
     // The views the run left out are left out of the normalisation here too (the frame must be the run's).

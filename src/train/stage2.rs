@@ -166,6 +166,10 @@ pub struct Stage2Config {
     pub iterations: u64,
     pub lr_material: f32,
     pub lr_light: f32,
+    /// The light is known (`--known-env`: an HDR map of the capture's lighting, fitted with SG lobes)
+    /// and stays as given: only the material and the indirect light are learnt.
+    #[serde(default)]
+    pub light_fixed: bool,
     /// The lobe axes learn at `lr_light` times this (they move slowly: each move past
     /// `retrace_degrees` costs a re-trace of that lobe).
     pub axis_lr_factor: f32,
@@ -252,6 +256,7 @@ impl Stage2Config {
             iterations,
             lr_material: 5e-3,
             lr_light: 3e-2,
+            light_fixed: false,
             axis_lr_factor: 0.1,
             lr_indirect: 2e-3,
             lr_final_factor: 0.1,
@@ -566,6 +571,24 @@ impl Stage2Model {
 
     pub fn lobes(&self) -> Vec<Sg<f64>> {
         light_lobes(&self.light)
+    }
+
+    /// Set the light to `lobes` (normalised frame), one per configured lobe.
+    pub fn set_light(&mut self, lobes: &[Sg<f64>]) -> Result<(), BackendError> {
+        if lobes.len() != self.cfg.lobes {
+            return Err(BackendError::Config(format!("stage 2: {} lobes given for a light of {}", lobes.len(), self.cfg.lobes)));
+        }
+        if lobes.iter().any(|l| !(l.lambda > 0.0 && l.lambda.is_finite() && l.axis.iter().chain(&l.mu).all(|v| v.is_finite()))) {
+            return Err(BackendError::Config("stage 2: a given light lobe is not finite or has sharpness <= 0".into()));
+        }
+        self.light = lobes
+            .iter()
+            .flat_map(|l| {
+                let a = unit_f32(l.axis);
+                [a[0], a[1], a[2], (l.lambda.max(LAMBDA_MIN) as f32).ln(), l.mu[0] as f32, l.mu[1] as f32, l.mu[2] as f32]
+            })
+            .collect();
+        Ok(())
     }
 
     /// Unit lobe axes (normalised frame).
@@ -1650,6 +1673,8 @@ pub struct Stage2Trainer {
     adam_enc: AdamState,
     adam_dec: Vec<AdamState>,
     adam_light: AdamState,
+    /// A known light's exposure (`light_fixed`): one log-scale of every lobe's amplitude.
+    adam_exposure: AdamState,
     adam_ind: AdamState,
     /// The refined SDF's Adam state (`--refine-geometry`; created with the first step).
     adam_sdf: Option<AdamState>,
@@ -1669,6 +1694,7 @@ impl Stage2Trainer {
             adam_enc: AdamState::new(&host, model.enc_params.len()),
             adam_dec: model.dec_params.iter().map(|p| AdamState::new(&host, p.len())).collect(),
             adam_light: AdamState::new(&host, model.light.len()),
+            adam_exposure: AdamState::new(&host, 1),
             adam_ind: AdamState::new(&host, model.ind_params.len()),
             adam_sdf: None,
             refined_sdf: None,
@@ -1715,12 +1741,23 @@ impl Stage2Trainer {
         }
         // Per-entry learning rate for the axes: Adam's moments do not depend on the rate, so
         // scaling the axes' update is a step at `ll · axis_lr_factor`.
-        let before = self.model.light.clone();
-        adam_host(&h, &cfg, &mut self.model.light, std::mem::take(&mut g.d_light), &mut self.adam_light, ll)?;
-        let fa = self.cfg().axis_lr_factor;
-        for (p, b) in self.model.light.chunks_exact_mut(LIGHT_STRIDE).zip(before.chunks_exact(LIGHT_STRIDE)) {
-            for a in 0..3 {
-                p[a] = b[a] + (p[a] - b[a]) * fa;
+        if self.cfg().light_fixed {
+            // A known map is rarely at the photos' exposure: its shape stays, one log-scale of
+            // all amplitudes is learnt (dL/d ln s = Σ dL/dμ_raw · μ_raw).
+            let d_light = std::mem::take(&mut g.d_light);
+            let d_log_scale: f32 = self.model.light.chunks_exact(LIGHT_STRIDE).zip(d_light.chunks_exact(LIGHT_STRIDE)).map(|(p, d)| (4..7).map(|c| p[c] * d[c]).sum::<f32>()).sum();
+            let mut log_scale = vec![0.0f32];
+            adam_host(&h, &cfg, &mut log_scale, vec![d_log_scale], &mut self.adam_exposure, ll)?;
+            let s = log_scale[0].exp();
+            self.model.light.chunks_exact_mut(LIGHT_STRIDE).for_each(|p| p[4..7].iter_mut().for_each(|m| *m *= s));
+        } else {
+            let before = self.model.light.clone();
+            adam_host(&h, &cfg, &mut self.model.light, std::mem::take(&mut g.d_light), &mut self.adam_light, ll)?;
+            let fa = self.cfg().axis_lr_factor;
+            for (p, b) in self.model.light.chunks_exact_mut(LIGHT_STRIDE).zip(before.chunks_exact(LIGHT_STRIDE)) {
+                for a in 0..3 {
+                    p[a] = b[a] + (p[a] - b[a]) * fa;
+                }
             }
         }
         if matches!(self.cfg().indirect, IndirectMode::Ours | IndirectMode::Mii) {
@@ -1792,6 +1829,7 @@ impl Stage2Trainer {
         st.insert("traced_axes", &[axes.len()], axes).map_err(err)?;
         st.put_adam_state(&self.host, "encoder", &self.adam_enc).map_err(err)?;
         st.put_adam_state(&self.host, "light", &self.adam_light).map_err(err)?;
+        st.put_adam_state(&self.host, "exposure", &self.adam_exposure).map_err(err)?;
         st.put_adam_state(&self.host, "indirect", &self.adam_ind).map_err(err)?;
         if let Some(g) = geometry.filter(|_| m.cfg.refine_geometry) {
             st.insert("sdf", &[g.sdf_params.len()], g.sdf_params.clone()).map_err(err)?;
@@ -1847,6 +1885,9 @@ impl Stage2Trainer {
         }
         if let Some(s) = st.adam_state(&host, "light").map_err(e)? {
             t.adam_light = s;
+        }
+        if let Some(s) = st.adam_state(&host, "exposure").map_err(e)? {
+            t.adam_exposure = s;
         }
         if let Some(s) = st.adam_state(&host, "indirect").map_err(e)? {
             t.adam_ind = s;
