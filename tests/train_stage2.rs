@@ -247,6 +247,7 @@ fn a_known_light_keeps_its_shape_and_learns_its_exposure() {
         let g = loss_and_grad(&b, &t.model, &batch, &weights(), step).unwrap();
         assert!(t.apply(g).unwrap().0);
     }
+    assert!((t.exposure - 2.0).abs() < 0.04, "learnt exposure {}", t.exposure);
     for (l, l0) in t.model.light.chunks_exact(7).zip(truth.light.chunks_exact(7)) {
         assert_eq!(l[..4], l0[..4], "axis and sharpness are the map's");
         for c in 4..7 {

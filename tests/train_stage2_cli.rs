@@ -394,6 +394,13 @@ fn a_known_light_is_fitted_into_the_run_frame_and_kept_fixed() {
     assert_ne!(la, pii_bake::train::stage2::init_light(6, 2), "the known light replaced the initial one");
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("material_report.json")).unwrap()).unwrap();
     assert_eq!(report["config"]["light_fixed"], true, "{report}");
+    assert_eq!(report["environment"]["known"], true, "{report}");
+    // The reported exposures are the factors on the map's fit: their ratio is the amplitudes'.
+    let exposure = |run: &Path| -> f64 {
+        let r: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("material_report.json")).unwrap()).unwrap();
+        r["environment"]["exposure"].as_f64().unwrap()
+    };
+    assert!((exposure(&a) / exposure(&b) / (la[4] / lb[4]) as f64 - 1.0).abs() < 1e-4, "{} {} {}", exposure(&a), exposure(&b), la[4] / lb[4]);
 
     let rel = dir.path().join("rel");
     let o = pii(&["relight", a.to_str().unwrap(), "--env", map.to_str().unwrap(), "--lobes", "6", "--max-views", "1", "--out", rel.to_str().unwrap()]);

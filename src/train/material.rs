@@ -367,7 +367,13 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "it_per_s": its,
         "material": { "mean_albedo": mean_alb, "mean_roughness": mean_rough },
         "photo_texture": texture,
-        "environment": { "total_energy": trainer.model.lobe_energies().iter().sum::<f64>(), "lobes_exported": cfg.lobes - idle, "idle_lobe_fraction": super::stage2::IDLE_LOBE_FRACTION },
+        "environment": {
+            "total_energy": trainer.model.lobe_energies().iter().sum::<f64>(),
+            "lobes_exported": cfg.lobes - idle,
+            "idle_lobe_fraction": super::stage2::IDLE_LOBE_FRACTION,
+            "known": cfg.light_fixed,
+            "exposure": if cfg.light_fixed { serde_json::json!(trainer.exposure) } else { serde_json::Value::Null },
+        },
         "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr_pixels": super::cli::HELD_OUT_PSNR_PIXELS, "psnr": psnr, "per_view": per_view, "seconds": t_eval.elapsed().as_secs_f64() },
         "weak_result": !flags.is_empty(),
         "flags": flags,
@@ -375,12 +381,13 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     });
     crate::util::atomic_write(&run_dir.join("material_report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
     ctx.say(format!(
-        "stage 2: {} steps ({} skipped) at {:.2} it/s; {}: PSNR {:.2} dB (learned light and material); {} of {} lobes without energy{}",
+        "stage 2: {} steps ({} skipped) at {:.2} it/s; {}: PSNR {:.2} dB ({} light and learned material); {} of {} lobes without energy{}",
         trainer.step,
         trainer.skipped,
         its,
         if held.is_empty() { "training views" } else { "held-out views" },
         psnr,
+        if cfg.light_fixed { format!("known light at {:.3}× the map's exposure", trainer.exposure) } else { "learned".to_string() },
         idle,
         cfg.lobes,
         if flags.is_empty() { String::new() } else { format!(" — WEAK RESULT: {}", flags.join("; ")) }

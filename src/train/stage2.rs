@@ -1683,6 +1683,8 @@ pub struct Stage2Trainer {
     pub refined_sdf: Option<Vec<f32>>,
     pub step: u64,
     pub skipped: u64,
+    /// A known light's learnt exposure (`light_fixed`): the factor on the map's fitted amplitudes.
+    pub exposure: f64,
     host: Backend,
 }
 
@@ -1701,6 +1703,7 @@ impl Stage2Trainer {
             model,
             step: 0,
             skipped: 0,
+            exposure: 1.0,
             host,
         })
     }
@@ -1749,6 +1752,7 @@ impl Stage2Trainer {
             let mut log_scale = vec![0.0f32];
             adam_host(&h, &cfg, &mut log_scale, vec![d_log_scale], &mut self.adam_exposure, ll)?;
             let s = log_scale[0].exp();
+            self.exposure *= s as f64;
             self.model.light.chunks_exact_mut(LIGHT_STRIDE).for_each(|p| p[4..7].iter_mut().for_each(|m| *m *= s));
         } else {
             let before = self.model.light.clone();
@@ -1841,6 +1845,7 @@ impl Stage2Trainer {
         st.set_step(self.step);
         st.metadata.insert("scene".into(), scene_key.to_string());
         st.metadata.insert("skipped".into(), self.skipped.to_string());
+        st.metadata.insert("exposure".into(), self.exposure.to_string());
         st.save(&dir.join(CHECKPOINT2))?;
         let cfg = serde_json::json!({ "stage": "material", "step": self.step, "scene": scene_key, "config": m.cfg });
         crate::util::atomic_write(&dir.join(RUN_CONFIG2), serde_json::to_string_pretty(&cfg).unwrap_or_default().as_bytes())
@@ -1903,6 +1908,7 @@ impl Stage2Trainer {
         }
         t.step = st.step().unwrap_or(0);
         t.skipped = st.metadata.get("skipped").and_then(|s| s.parse().ok()).unwrap_or(0);
+        t.exposure = st.metadata.get("exposure").and_then(|s| s.parse().ok()).filter(|e: &f64| e.is_finite() && *e > 0.0).unwrap_or(1.0);
         Ok((t, scene, traced))
     }
 }
