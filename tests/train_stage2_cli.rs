@@ -369,8 +369,9 @@ fn a_known_light_is_fitted_into_the_run_frame_and_kept_fixed() {
     // `--known-env`: the capture's own light map, fitted with the stage's lobes in the run's
     // normalised frame; its shape is never trained, only one exposure. The learnt environment
     // (written back in the map's layout by relight) peaks where the map does and keeps its energy
-    // (within 25%: a few steps of exposure); 1 and 3 iterations end with the same shape; a resume
-    // must make the same choice; a map that is not an EXR is named.
+    // (within 25%: a few steps of exposure); 1 and 3 iterations end with the same shape; with
+    // `light_fixed=false` the map only starts the light; a resume must make the same choice; a
+    // map that is not an EXR is named.
     use pii_bake::sg::env::LatlongConvention;
     let dir = tempfile::tempdir().unwrap();
     let map = example().join("env/train.exr");
@@ -411,6 +412,15 @@ fn a_known_light_is_fitted_into_the_run_frame_and_kept_fixed() {
     assert!(cos > 20f32.to_radians().cos(), "learnt light peaks {:.1}° from the map's peak", cos.clamp(-1.0, 1.0).acos().to_degrees());
     assert!((e_fit / e_map - 1.0).abs() < 0.25, "energy kept {:.3}", e_fit / e_map);
 
+    // `--material-set light_fixed=false`: the map is only where the light starts; then it is learnt.
+    let c = dir.path().join("c");
+    copy_dir(&b, &c);
+    let o = stage2(&c, &[&known[..], &["--material-iterations", "1", "--material-set", "light_fixed=false"]].concat());
+    assert!(o.status.success(), "{}", text(&o));
+    let lc = light(&c);
+    assert!(lc.chunks_exact(7).zip(lb.chunks_exact(7)).any(|(x, y)| x[..4] != y[..4]), "a learnt light moves its axes or sharpness");
+    let rc: serde_json::Value = serde_json::from_slice(&std::fs::read(c.join("material_report.json")).unwrap()).unwrap();
+    assert!(rc["config"]["light_fixed"] == false && rc["environment"]["exposure"].is_null(), "{rc}");
     let o = stage2(&a, &["--material-iterations", "5", "--resume"]);
     assert!(!o.status.success());
     assert!(text(&o).contains("material.safetensors") && text(&o).contains("--known-env"), "{}", text(&o));

@@ -160,7 +160,11 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &s
     cfg.light_fixed = opts.known_env.is_some();
     let cfg = super::stage2::apply_overrides(cfg, &opts.material_set)?;
     let why = serde_json::json!({
-        "light": match &opts.known_env { Some(p) => format!("known: {} ({:?} layout) fitted with the lobes and kept fixed", p.display(), opts.known_env_convention), None => "learnt from the photos".to_string() },
+        "light": match &opts.known_env {
+            Some(p) if cfg.light_fixed => format!("known: {} ({:?} layout) fitted with the lobes, its shape kept, one exposure learnt", p.display(), opts.known_env_convention),
+            Some(p) => format!("learnt from the photos, starting from {} ({:?} layout) fitted with the lobes", p.display(), opts.known_env_convention),
+            None => "learnt from the photos".to_string(),
+        },
         "lobes": if opts.lobes.is_some() { "forced by --lobes".to_string() } else { format!("{} preset default; lobes left with no energy are reported after training", preset.name()) },
         "decoder": if opts.decoder.is_some() { "forced by --decoder".to_string() } else if synthetic { "separate: a synthetic (transforms.json) scene".to_string() } else { "shared: a real capture (supplementary §5.2)".to_string() },
         "points": format!("min(preset cap, {} masked training pixels)", data.foreground_pixels()),
@@ -208,11 +212,12 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
             let to_run = DMat3::from_cols_array(&s1.run_scene.rotation).transpose();
             let (lobes, secs) = super::relight::fit_map_lobes(backend, map, opts.known_env_convention, cfg.lobes, to_run, ctx)?;
             t.model.set_light(&lobes).map_err(|e| DataError::new(map, e.to_string()))?;
-            ctx.say(format!("stage 2: the light is known: {} fitted with {} lobes [{secs:.1} s], kept fixed", map.display(), lobes.len()));
+            let kept = if cfg.light_fixed { "its shape kept, one exposure learnt" } else { "the starting light (light_fixed=false: then learnt)" };
+            ctx.say(format!("stage 2: the light is known: {} fitted with {} lobes [{secs:.1} s], {kept}", map.display(), lobes.len()));
         }
         (t, Vec::new())
     };
-    if resuming && trainer.cfg().light_fixed != opts.known_env.is_some() {
+    if resuming && trainer.cfg().light_fixed != cfg.light_fixed {
         let had = if trainer.cfg().light_fixed { "a known (fixed) light" } else { "a learnt light" };
         return Err(DataError::new(&run_dir.join(CHECKPOINT2), format!("this stage-2 run has {had}: resume it with the same --known-env choice")).into());
     }
