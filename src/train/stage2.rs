@@ -259,9 +259,9 @@ impl Stage2Config {
             light_fixed: false,
             // `bench material` (32 lobes, ours, 2400 iterations, seed 0), albedo / relit PSNR /
             // roughness MSE, 0.1 -> 0.3: bowl 16.64 / 18.18 / 0.047 -> 17.48 / 18.84 / 0.038,
-            // example 26.57 / 27.51 / 0.027 -> 26.71 / 27.65 / 0.023, textureless bowl 17.39 / 21.85 / 0.061 -> 17.97 / 22.13 / 0.061. Faster
-            // axes let the lobes gather on a low sun the rim hides; they cost more re-traced lobes
-            // (bowl 38 -> 98: 43 -> 108 s; example's stage-2 training 202 -> 265 s).
+            // example 26.57 / 27.51 / 0.027 -> 26.71 / 27.65 / 0.023, textureless bowl 17.39 /
+            // 21.85 / 0.061 -> 17.97 / 22.13 / 0.061. Faster axes cost more re-traced lobes (bowl
+            // 38 -> 98, 43 -> 108 s; the example's stage-2 training 202 -> 265 s).
             axis_lr_factor: 0.3,
             lr_indirect: 2e-3,
             lr_final_factor: 0.1,
