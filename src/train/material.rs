@@ -63,8 +63,9 @@ pub struct MaterialOptions {
     #[arg(long = "material-set")]
     pub material_set: Vec<String>,
     /// The capture's lighting, when it was recorded (an on-set HDRI: a latlong .exr in the
-    /// scene's world frame): it is fitted with the stage's SG lobes and kept fixed, so stage 2
-    /// learns only material and indirect light, and light and albedo cannot trade for each other.
+    /// scene's world frame): it is fitted with the stage's SG lobes and its shape kept (one
+    /// exposure is learnt), so light and albedo cannot trade for each other;
+    /// `--material-set light_fixed=false` only starts the light from it.
     #[arg(long, value_name = "MAP.exr")]
     pub known_env: Option<std::path::PathBuf>,
     /// Latlong layout of `--known-env` (`open-exr-usd`: +Y up, centre along +Z; `blender`: a
