@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 
 use serde::Serialize;
 
-use super::material::{train_stage2, MaterialOptions};
+use super::material::{train_stage2, KnownEnv, MaterialOptions};
 use super::stage1::{Preset, CHECKPOINT, RUN_CONFIG};
 use super::stage2::{BoundaryMode, IndirectMode};
 use crate::context::Context;
@@ -49,13 +49,10 @@ pub struct BenchMaterialArgs {
     /// Stage-2 setting overrides, KEY=VALUE, applied to every variant.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub overrides: Vec<String>,
-    /// Train every variant under this known light (`train --known-env`; a scene from
+    /// Train every variant under a known light (as `train --known-env`; a scene from
     /// `scripts/make_scene.py` has its training light in `env/train.exr`, Blender layout).
-    #[arg(long, value_name = "MAP.exr")]
-    pub known_env: Option<PathBuf>,
-    /// Latlong layout of `--known-env`.
-    #[arg(long, value_enum, default_value_t = crate::sg::env::LatlongConvention::OpenExrUsd)]
-    pub known_env_convention: crate::sg::env::LatlongConvention,
+    #[command(flatten)]
+    pub known_env: KnownEnv,
 }
 
 /// Stage 2's geometry, as a bench variant.
@@ -123,7 +120,7 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
             let dir = args.out.join("runs").join(&variant);
             copy_stage1(&args.run, &dir)?;
             ctx.say(format!("bench material: {variant}"));
-            let opts = MaterialOptions { lobes: Some(k), indirect: mode, boundary, refine_geometry: refined, material_iterations: args.iterations, material_set: args.overrides.clone(), known_env: args.known_env.clone(), known_env_convention: args.known_env_convention, ..Default::default() };
+            let opts = MaterialOptions { lobes: Some(k), indirect: mode, boundary, refine_geometry: refined, material_iterations: args.iterations, material_set: args.overrides.clone(), known_env: args.known_env.clone(), ..Default::default() };
             let r = train_stage2(&scene, args.preset, &opts, 0, &dir, false, None, &backend, ctx)?;
             let rep = &r.report;
             let f = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);

@@ -62,21 +62,28 @@ pub struct MaterialOptions {
     /// Stage-2 setting overrides, KEY=VALUE (any field of the stage-2 config), repeatable.
     #[arg(long = "material-set")]
     pub material_set: Vec<String>,
+    #[command(flatten)]
+    pub known_env: KnownEnv,
+}
+
+/// The capture's recorded lighting for stage 2, shared by `train`, `bake` and `bench material`.
+#[derive(Debug, Clone, Default, clap::Args)]
+pub struct KnownEnv {
     /// The capture's lighting, when it was recorded (an on-set HDRI: a latlong .exr in the
     /// scene's world frame): it is fitted with the stage's SG lobes and its shape kept (one
-    /// exposure is learnt), so light and albedo cannot trade for each other;
-    /// `--material-set light_fixed=false` only starts the light from it.
-    #[arg(long, value_name = "MAP.exr")]
-    pub known_env: Option<std::path::PathBuf>,
+    /// exposure is learnt), so light and albedo cannot trade for each other; the stage-2 override
+    /// `light_fixed=false` only starts the light from it.
+    #[arg(long = "known-env", value_name = "MAP.exr")]
+    pub map: Option<std::path::PathBuf>,
     /// Latlong layout of `--known-env` (`open-exr-usd`: +Y up, centre along +Z; `blender`: a
     /// Blender World's).
-    #[arg(long, value_enum, default_value_t = LatlongConvention::OpenExrUsd)]
-    pub known_env_convention: LatlongConvention,
+    #[arg(long = "known-env-convention", value_enum, default_value_t = LatlongConvention::OpenExrUsd)]
+    pub convention: LatlongConvention,
 }
 
 impl Default for MaterialOptions {
     fn default() -> Self {
-        Self { lobes: None, indirect: IndirectMode::Ours, decoder: None, roughness: RoughnessMode::Field, boundary: BoundaryMode::Flowing, refine_geometry: false, material_iterations: None, material_batch: None, material_set: Vec::new(), known_env: None, known_env_convention: LatlongConvention::OpenExrUsd }
+        Self { lobes: None, indirect: IndirectMode::Ours, decoder: None, roughness: RoughnessMode::Field, boundary: BoundaryMode::Flowing, refine_geometry: false, material_iterations: None, material_batch: None, material_set: Vec::new(), known_env: KnownEnv::default() }
     }
 }
 
@@ -158,12 +165,12 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &s
     if let Some(n) = opts.material_batch {
         cfg.batch = n;
     }
-    cfg.light_fixed = opts.known_env.is_some();
+    cfg.light_fixed = opts.known_env.map.is_some();
     let cfg = super::stage2::apply_overrides(cfg, &opts.material_set)?;
     let why = serde_json::json!({
-        "light": match &opts.known_env {
-            Some(p) if cfg.light_fixed => format!("known: {} ({:?} layout) fitted with the lobes, its shape kept, one exposure learnt", p.display(), opts.known_env_convention),
-            Some(p) => format!("learnt from the photos, starting from {} ({:?} layout) fitted with the lobes", p.display(), opts.known_env_convention),
+        "light": match &opts.known_env.map {
+            Some(p) if cfg.light_fixed => format!("known: {} ({:?} layout) fitted with the lobes, its shape kept, one exposure learnt", p.display(), opts.known_env.convention),
+            Some(p) => format!("learnt from the photos, starting from {} ({:?} layout) fitted with the lobes", p.display(), opts.known_env.convention),
             None => "learnt from the photos".to_string(),
         },
         "lobes": if opts.lobes.is_some() { "forced by --lobes".to_string() } else { format!("{} preset default; lobes left with no energy are reported after training", preset.name()) },
@@ -208,10 +215,10 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         (t, traced)
     } else {
         let mut t = Stage2Trainer::new(&cfg)?;
-        if let Some(map) = &opts.known_env {
+        if let Some(map) = &opts.known_env.map {
             // The map is in the scene's world frame; the model's is the run's normalised one.
             let to_run = DMat3::from_cols_array(&s1.run_scene.rotation).transpose();
-            let (lobes, secs) = super::relight::fit_map_lobes(backend, map, opts.known_env_convention, cfg.lobes, to_run, ctx)?;
+            let (lobes, secs) = super::relight::fit_map_lobes(backend, map, opts.known_env.convention, cfg.lobes, to_run, ctx)?;
             t.model.set_light(&lobes).map_err(|e| DataError::new(map, e.to_string()))?;
             let kept = if cfg.light_fixed { "its shape kept, one exposure learnt" } else { "the starting light (light_fixed=false: then learnt)" };
             ctx.say(format!("stage 2: the light is known: {} fitted with {} lobes [{secs:.1} s], {kept}", map.display(), lobes.len()));
