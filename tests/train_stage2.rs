@@ -556,7 +556,6 @@ fn wgpu_matches_cpu_on_the_refined_geometry_gradient() {
     // renders (material and F_ind on the backend), so it carries their rounding times ~1e3: the worst
     // entry differs by 2.4e-3 of the largest (5e-5 with that term left out).
     let scale = a.d_sdf.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-6);
-    for (i, (p, q)) in a.d_sdf.iter().zip(&c.d_sdf).enumerate() {
-        assert!((p - q).abs() <= 5e-3 * scale + 1e-6, "d_sdf[{i}]: cpu {p} vs wgpu {q}");
-    }
+    let (i, worst) = a.d_sdf.iter().zip(&c.d_sdf).map(|(p, q)| (p - q).abs()).enumerate().fold((0, 0.0f32), |m, (i, d)| if d > m.1 { (i, d) } else { m });
+    assert!(worst <= 5e-3 * scale + 1e-6, "d_sdf[{i}]: cpu {} vs wgpu {}, {:.2e} of the largest entry {scale}", a.d_sdf[i], c.d_sdf[i], worst / scale);
 }

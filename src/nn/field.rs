@@ -11,10 +11,21 @@
 //!
 //! Encodings ([`PositionEncoder`]): the frequency encoding with the input included for the paper
 //! preset, and the raw position concatenated with the multiresolution hash grid (NeuS2) for the
-//! fast preset. Both run on the host through the cpu twins of `nn::encoding`; the MLP runs on the
-//! chosen backend.
+//! fast preset. The MLP runs on the chosen backend. On the cpu backend, and for the frequency
+//! encoding everywhere, the encoding runs on the host through the cpu twins of `nn::encoding`; on
+//! wgpu the hash grid runs its WGSL twin and `shaders/field.wgsl` assembles the MLP's input rows
+//! on the device, so only the points go up and only the outputs come back, and the parameters stay
+//! on the device between calls while they are unchanged (tracing evaluates the field dozens of
+//! times per training step).
 
-use crate::backend::{Backend, BackendError};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Mutex;
+use std::time::Instant;
+
+use rayon::prelude::*;
+
+use crate::backend::gpu::{groups_1d, shaders, Access, KernelSpec};
+use crate::backend::{Backend, BackendError, Tensor};
 use crate::nn::encoding::{encoding_backward_cpu, encoding_forward_cpu, EncodingConfig};
 use crate::nn::mlp::{Activation, Init, Mlp, MlpConfig};
 
@@ -33,6 +44,35 @@ pub trait Encoder: Send + Sync + std::fmt::Debug {
     /// MLP (the others output 0 and receive no gradient); `None` = all. Encoders without levels
     /// ignore it.
     fn set_active_levels(&mut self, _levels: Option<usize>) {}
+    /// Where the encoding has a WGSL twin: the row layout [`SdfField`] assembles on the device.
+    fn device_layout(&self) -> Option<DeviceLayout> {
+        None
+    }
+}
+
+/// An encoder row as the device builds it: `raw` input columns, then `enc` encoding columns of
+/// which the first `active` are kept (the rest are zero, see [`Encoder::set_active_levels`]).
+#[derive(Clone, Debug)]
+pub struct DeviceLayout {
+    pub encoding: EncodingConfig,
+    pub raw: usize,
+    pub enc: usize,
+    pub active: usize,
+}
+
+static HOST_ENCODING_NS: AtomicU64 = AtomicU64::new(0);
+
+/// Seconds spent so far in this process in [`PositionEncoder`]'s host encodings (forward and
+/// backward), whatever the backend: the reports divide the difference over a run by its steps.
+pub fn host_encoding_seconds() -> f64 {
+    HOST_ENCODING_NS.load(Ordering::Relaxed) as f64 * 1e-9
+}
+
+fn timed<T>(f: impl FnOnce() -> T) -> T {
+    let t = Instant::now();
+    let out = f();
+    HOST_ENCODING_NS.fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
+    out
 }
 
 /// The field's position encoding, computed by the cpu twins of `nn::encoding`:
@@ -83,6 +123,26 @@ impl Encoder for PositionEncoder {
         self.encoding.init_params(seed)
     }
     fn forward(&self, params: &[f32], x: &[f32]) -> Vec<f32> {
+        timed(|| self.forward_host(params, x))
+    }
+    fn backward_params(&self, params: &[f32], x: &[f32], d_enc: &[f32]) -> Vec<f32> {
+        timed(|| self.backward_params_host(params, x, d_enc))
+    }
+    fn set_active_levels(&mut self, levels: Option<usize>) {
+        self.active_levels = levels;
+    }
+    fn device_layout(&self) -> Option<DeviceLayout> {
+        let EncodingConfig::HashGrid { .. } = self.encoding else {
+            return None;
+        };
+        let (raw, enc) = (self.raw_dim(), self.encoding.out_dim(3));
+        let active = self.inactive_columns().map_or(enc, |(a, _)| a - raw);
+        Some(DeviceLayout { encoding: self.encoding.clone(), raw, enc, active })
+    }
+}
+
+impl PositionEncoder {
+    fn forward_host(&self, params: &[f32], x: &[f32]) -> Vec<f32> {
         let enc = encoding_forward_cpu(&self.encoding, params, x, 3);
         let mut out = if !self.raw_xyz {
             enc
@@ -101,7 +161,7 @@ impl Encoder for PositionEncoder {
         }
         out
     }
-    fn backward_params(&self, params: &[f32], x: &[f32], d_enc: &[f32]) -> Vec<f32> {
+    fn backward_params_host(&self, params: &[f32], x: &[f32], d_enc: &[f32]) -> Vec<f32> {
         if self.encoding.num_params() == 0 {
             return Vec::new();
         }
@@ -117,9 +177,6 @@ impl Encoder for PositionEncoder {
             })
             .collect();
         encoding_backward_cpu(&self.encoding, params, x, 3, &d, false).0
-    }
-    fn set_active_levels(&mut self, levels: Option<usize>) {
-        self.active_levels = levels;
     }
 }
 
@@ -274,6 +331,9 @@ pub struct SdfField {
     pub config: SdfFieldConfig,
     pub encoder: Box<dyn Encoder>,
     pub mlp: Mlp,
+    /// The parameters' copy on the device, re-uploaded only when their bytes change: tracing
+    /// evaluates the field dozens of times per training step with the same parameters.
+    mirror: Mutex<Vec<(Vec<f32>, Tensor)>>,
 }
 
 impl SdfField {
@@ -287,11 +347,7 @@ impl SdfField {
         config.encoding.encoding_config().validate(3)?;
         let encoder: Box<dyn Encoder> = Box::new(config.encoding.encoder());
         let mlp = Mlp::new(config.mlp_config(encoder.out_dim()))?;
-        Ok(Self {
-            config,
-            encoder,
-            mlp,
-        })
+        Ok(Self { config, encoder, mlp, mirror: Mutex::new(Vec::new()) })
     }
 
     /// A field from an already-built encoder (e.g. a hash grid from `nn::encoding`).
@@ -300,11 +356,7 @@ impl SdfField {
         encoder: Box<dyn Encoder>,
     ) -> Result<Self, BackendError> {
         let mlp = Mlp::new(config.mlp_config(encoder.out_dim()))?;
-        Ok(Self {
-            config,
-            encoder,
-            mlp,
-        })
+        Ok(Self { config, encoder, mlp, mirror: Mutex::new(Vec::new()) })
     }
 
     pub fn num_params(&self) -> usize {
@@ -355,14 +407,46 @@ impl SdfField {
     ) -> Result<Vec<f32>, BackendError> {
         Self::check_points(x)?;
         let (pe, pm) = self.split(params)?;
-        let enc = self.encoder.forward(pe, x);
-        let fwd = backend.mlp_forward(
-            &self.mlp,
-            &backend.upload(pm),
-            &backend.from_vec(enc),
-            false,
-        )?;
+        let (_, enc) = self.encode(backend, pe, x)?;
+        let fwd = backend.mlp_forward(&self.mlp, &self.on_device(backend, pm), &enc, false)?;
         backend.to_vec(&fwd.output)
+    }
+
+    /// `params` on the backend: on wgpu, the device copy kept from an earlier call whose values
+    /// were the same (compared bit for bit against the host copy kept beside it, in parallel:
+    /// far cheaper than the upload), else a fresh upload.
+    fn on_device(&self, backend: &Backend, params: &[f32]) -> Tensor {
+        if !backend.is_gpu() || params.is_empty() {
+            return backend.upload(params);
+        }
+        let mut m = self.mirror.lock().expect("field mirror poisoned");
+        if let Some((_, Tensor::Device(b))) = m.iter().find(|(host, _)| same_bits(host, params)) {
+            return Tensor::Device(b.clone());
+        }
+        let t = backend.upload(params);
+        // The encoding's and the MLP's parameters, and one spare for a caller alternating sets.
+        if m.len() >= 3 {
+            m.remove(0);
+        }
+        if let Tensor::Device(b) = &t {
+            m.push((params.to_vec(), Tensor::Device(b.clone())));
+        }
+        t
+    }
+
+    /// The MLP's input rows for points `x`, and the points as a device tensor where the
+    /// encoding ran on the device (the backward needs them). On wgpu a hash-grid encoder runs
+    /// its WGSL twin and the row is assembled there; otherwise the host encodes and uploads.
+    fn encode(&self, backend: &Backend, pe: &[f32], x: &[f32]) -> Result<(Option<Tensor>, Tensor), BackendError> {
+        let (Some(g), Some(l)) = (backend.gpu(), self.encoder.device_layout()) else {
+            return Ok((None, backend.from_vec(self.encoder.forward(pe, x))));
+        };
+        let n = x.len() / 3;
+        let xt = backend.upload(x);
+        let grid = backend.encoding_forward(&l.encoding, &self.on_device(backend, pe), &xt, n)?;
+        let out = g.zeros_f32("field.rows", n * (l.raw + l.enc));
+        row_kernel(g, "assemble", &l, n, xt.device()?, grid.device()?, &out, n * (l.raw + l.enc))?;
+        Ok((Some(xt), Tensor::Device(out)))
     }
 
     /// SDF values `[n]`.
@@ -439,9 +523,9 @@ impl SdfField {
         let n = Self::check_points(x)?;
         let (pe, pm) = self.split(params)?;
         let pts = self.stencil(x);
-        let enc = self.encoder.forward(pe, &pts);
-        let pm_t = backend.upload(pm);
-        let fwd = backend.mlp_forward(&self.mlp, &pm_t, &backend.upload(&enc), true)?;
+        let (pts_t, enc) = self.encode(backend, pe, &pts)?;
+        let pm_t = self.on_device(backend, pm);
+        let fwd = backend.mlp_forward(&self.mlp, &pm_t, &enc, true)?;
         let out = backend.to_vec(&fwd.output)?;
         let outputs = self.outputs_from_stencil(&out, n);
         let (value, g) = loss(&outputs);
@@ -477,15 +561,63 @@ impl SdfField {
             }
         }
         let grads = backend.mlp_backward(&self.mlp, &pm_t, &fwd, &backend.from_vec(d_out))?;
-        let mut d_params = if self.encoder.num_params() > 0 {
-            let d_enc = backend.to_vec(&grads.d_input)?;
-            self.encoder.backward_params(pe, &pts, &d_enc)
-        } else {
-            Vec::new()
+        let mut d_params = match (backend.gpu(), self.encoder.device_layout(), &pts_t) {
+            (Some(g), Some(l), Some(pts_t)) => {
+                let m = pts.len() / 3;
+                let d_row = grads.d_input.device()?;
+                let d_enc = g.zeros_f32("field.d_enc", m * l.enc);
+                row_kernel(g, "split", &l, m, d_row, d_row, &d_enc, m * l.enc)?;
+                let grid = self.on_device(backend, pe);
+                let (dp, _) = backend.encoding_backward(&l.encoding, &grid, pts_t, m, &Tensor::Device(d_enc), false)?;
+                backend.to_vec(&dp)?
+            }
+            _ if self.encoder.num_params() > 0 => {
+                let d_enc = backend.to_vec(&grads.d_input)?;
+                self.encoder.backward_params(pe, &pts, &d_enc)
+            }
+            _ => Vec::new(),
         };
         d_params.extend(backend.to_vec(&grads.d_params)?);
         Ok((value, d_params))
     }
+}
+
+/// Whether two slices hold the same bits (NaN included), compared in parallel blocks.
+fn same_bits(a: &[f32], b: &[f32]) -> bool {
+    let (a, b): (&[u32], &[u32]) = (bytemuck::cast_slice(a), bytemuck::cast_slice(b));
+    a.len() == b.len() && a.par_chunks(1 << 16).zip(b.par_chunks(1 << 16)).all(|(x, y)| x == y)
+}
+
+/// Mirrors `RowParams` in `shaders/field.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct RowParams {
+    n: u32,
+    raw: u32,
+    enc: u32,
+    active: u32,
+}
+
+const FIELD_WGSL: &str = include_str!("../../shaders/field.wgsl");
+
+/// Launch `assemble` or `split` of `shaders/field.wgsl` over `total` outputs.
+fn row_kernel(
+    g: &crate::backend::gpu::GpuContext,
+    entry: &str,
+    l: &DeviceLayout,
+    n: usize,
+    a: &crate::backend::gpu::GpuBuffer,
+    b: &crate::backend::gpu::GpuBuffer,
+    out: &crate::backend::gpu::GpuBuffer,
+    total: usize,
+) -> Result<(), BackendError> {
+    if total > u32::MAX as usize {
+        return Err(BackendError::Shape(format!("field rows: {total} values is too many for 32-bit indexing")));
+    }
+    let spec = KernelSpec::new(true, &[Access::Read, Access::Read, Access::ReadWrite]);
+    let k = g.kernel("field", &shaders::with_lib(FIELD_WGSL), entry, &spec)?;
+    let p = RowParams { n: n as u32, raw: l.raw as u32, enc: l.enc as u32, active: l.active as u32 };
+    g.dispatch(&k, Some(bytemuck::bytes_of(&p)), &[a.into(), b.into(), out.into()], groups_1d(total, 256))
 }
 
 #[cfg(test)]

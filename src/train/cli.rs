@@ -447,6 +447,8 @@ pub fn train_stage1(
     pb.set_position(trainer.step);
     let t_loop = Instant::now();
     let step0 = trainer.step;
+    let gpu0 = backend.gpu().map(|g| g.counters());
+    let enc0 = crate::nn::field::host_encoding_seconds();
     let mut last = StepStats::default();
     let end = stop_at.unwrap_or(cfg.iterations).min(cfg.iterations);
     while trainer.step < end {
@@ -501,6 +503,8 @@ pub fn train_stage1(
         "skipped_steps": trainer.skipped,
         "last": last,
         "it_per_s": its,
+        "gpu_per_step": gpu0.zip(backend.gpu()).map(|(c0, g)| g.counters().per(&c0, trainer.step - step0)),
+        "host_encoding_seconds_per_step": (crate::nn::field::host_encoding_seconds() - enc0) / (trainer.step - step0).max(1) as f64,
         "hull_init": hull_report,
         "mesh_init": mesh_report,
         "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr_pixels": HELD_OUT_PSNR_PIXELS, "psnr": ev.psnr, "mask_iou": ev.mask_iou, "per_view": ev.per_view, "seconds": t_eval.elapsed().as_secs_f64() },

@@ -9,7 +9,9 @@
 //! compute the linear index with `linear_index(gid, nwg, WG)` from `shaders/lib/index.wgsl`.
 
 use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
+use std::time::Instant;
 
 use wgpu::util::DeviceExt;
 
@@ -88,7 +90,8 @@ pub fn list_adapters() -> Vec<AdapterSummary> {
 }
 
 /// A storage buffer of 4-byte elements (f32, u32 or Pod structs of them) with its element count.
-#[derive(Debug)]
+/// A clone is another handle to the same buffer, not a copy.
+#[derive(Clone, Debug)]
 pub struct GpuBuffer {
     pub buffer: wgpu::Buffer,
     pub len: usize,
@@ -144,6 +147,51 @@ pub struct GpuContext {
     pub limits: wgpu::Limits,
     pub features: wgpu::Features,
     kernels: Mutex<HashMap<String, Arc<Kernel>>>,
+    counters: Counters,
+}
+
+/// Host↔device traffic and synchronisation counted since the context was made: what a training
+/// step costs beyond its kernels (each wait is a round trip to the device).
+#[derive(Default)]
+struct Counters {
+    dispatches: AtomicU64,
+    submits: AtomicU64,
+    waits: AtomicU64,
+    wait_ns: AtomicU64,
+    reads: AtomicU64,
+    read_bytes: AtomicU64,
+    uploads: AtomicU64,
+    upload_bytes: AtomicU64,
+}
+
+/// A snapshot of [`GpuContext::counters`]; `per(steps, earlier)` gives the mean per step.
+#[derive(Clone, Copy, Debug, Default, serde::Serialize)]
+pub struct GpuCounters {
+    pub dispatches: f64,
+    pub submits: f64,
+    pub waits: f64,
+    pub wait_seconds: f64,
+    pub reads: f64,
+    pub read_bytes: f64,
+    pub uploads: f64,
+    pub upload_bytes: f64,
+}
+
+impl GpuCounters {
+    /// The mean per step of what happened between `earlier` and `self`.
+    pub fn per(&self, earlier: &GpuCounters, steps: u64) -> GpuCounters {
+        let n = steps.max(1) as f64;
+        GpuCounters {
+            dispatches: (self.dispatches - earlier.dispatches) / n,
+            submits: (self.submits - earlier.submits) / n,
+            waits: (self.waits - earlier.waits) / n,
+            wait_seconds: (self.wait_seconds - earlier.wait_seconds) / n,
+            reads: (self.reads - earlier.reads) / n,
+            read_bytes: (self.read_bytes - earlier.read_bytes) / n,
+            uploads: (self.uploads - earlier.uploads) / n,
+            upload_bytes: (self.upload_bytes - earlier.upload_bytes) / n,
+        }
+    }
 }
 
 /// Workgroup counts for `n` invocations of a 1-D kernel with workgroup size `wg`, spread over x
@@ -207,7 +255,7 @@ impl GpuContext {
         // never a panic.
         device.on_uncaptured_error(Arc::new(|e| tracing::error!("uncaptured wgpu error: {e}")));
         tracing::debug!("wgpu adapter: {} ({:?}, {:?})", info.name, info.backend, info.device_type);
-        Ok(Self { adapter, device, queue, info, limits, features, kernels: Mutex::new(HashMap::new()) })
+        Ok(Self { adapter, device, queue, info, limits, features, kernels: Mutex::new(HashMap::new()), counters: Counters::default() })
     }
 
     pub fn is_software(&self) -> bool {
@@ -216,6 +264,26 @@ impl GpuContext {
 
     pub fn supports_timestamps(&self) -> bool {
         self.features.contains(wgpu::Features::TIMESTAMP_QUERY)
+    }
+
+    /// Totals since the context was made (see [`GpuCounters::per`]).
+    pub fn counters(&self) -> GpuCounters {
+        let c = &self.counters;
+        let g = |a: &AtomicU64| a.load(Ordering::Relaxed) as f64;
+        GpuCounters {
+            dispatches: g(&c.dispatches),
+            submits: g(&c.submits),
+            waits: g(&c.waits),
+            wait_seconds: g(&c.wait_ns) * 1e-9,
+            reads: g(&c.reads),
+            read_bytes: g(&c.read_bytes),
+            uploads: g(&c.uploads),
+            upload_bytes: g(&c.upload_bytes),
+        }
+    }
+
+    fn count(&self, which: &AtomicU64, by: u64) {
+        which.fetch_add(by, Ordering::Relaxed);
     }
 
     // ---- buffers -------------------------------------------------------------------------
@@ -230,6 +298,8 @@ impl GpuContext {
         // wgpu rejects zero-sized bindings: keep at least one element.
         let padded = [0u8; 4];
         let contents = if bytes.is_empty() { &padded[..] } else { bytes };
+        self.count(&self.counters.uploads, 1);
+        self.count(&self.counters.upload_bytes, contents.len() as u64);
         let buffer = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some(label),
             contents,
@@ -268,6 +338,8 @@ impl GpuContext {
             )));
         }
         if !bytes.is_empty() {
+            self.count(&self.counters.uploads, 1);
+            self.count(&self.counters.upload_bytes, bytes.len() as u64);
             self.queue.write_buffer(&dst.buffer, 0, bytes);
         }
         Ok(())
@@ -287,6 +359,9 @@ impl GpuContext {
         });
         let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
         enc.copy_buffer_to_buffer(&src.buffer, 0, &staging, 0, size);
+        self.count(&self.counters.reads, 1);
+        self.count(&self.counters.read_bytes, size);
+        self.count(&self.counters.submits, 1);
         self.queue.submit([enc.finish()]);
         let slice = staging.slice(..);
         let (tx, rx) = std::sync::mpsc::channel();
@@ -315,10 +390,15 @@ impl GpuContext {
 
     /// Block until every submitted command buffer has finished.
     pub fn wait_idle(&self) -> Result<(), BackendError> {
-        self.device
+        let t = Instant::now();
+        let r = self
+            .device
             .poll(wgpu::PollType::wait_indefinitely())
             .map(|_| ())
-            .map_err(|e| BackendError::Device(format!("poll failed: {e}")))
+            .map_err(|e| BackendError::Device(format!("poll failed: {e}")));
+        self.count(&self.counters.waits, 1);
+        self.count(&self.counters.wait_ns, t.elapsed().as_nanos() as u64);
+        r
     }
 
     // ---- kernels -------------------------------------------------------------------------
@@ -394,7 +474,7 @@ impl GpuContext {
         }
     }
 
-    /// Record, submit and wait for one dispatch. Validation errors come back as errors.
+    /// Record and submit one dispatch (see [`Batch::submit`]). Validation errors come back as errors.
     pub fn dispatch(
         &self,
         kernel: &Kernel,
@@ -524,6 +604,7 @@ impl Batch<'_> {
             pass.set_bind_group(0, &bg, &[]);
             pass.dispatch_workgroups(groups[0], groups[1], groups[2]);
         }
+        ctx.count(&ctx.counters.dispatches, 1);
         if let Some(err) = pollster::block_on(scope.pop()) {
             return Err(BackendError::Validation { label: kernel.label.clone(), message: err.to_string() });
         }
@@ -541,18 +622,23 @@ impl Batch<'_> {
         Ok(())
     }
 
-    /// Submit the batch and wait for it to finish.
+    /// Submit the batch without waiting for it: the queue runs submissions in order, so a later
+    /// dispatch, write or [`GpuContext::read`] sees its results, and wgpu keeps the buffers it
+    /// uses alive until it is done. Waiting here cost a round trip to the device per kernel
+    /// launch, most of what a small training batch spends on a discrete GPU.
     pub fn submit(self) -> Result<(), BackendError> {
         let scope = self.ctx.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        self.ctx.count(&self.ctx.counters.submits, 1);
         self.ctx.queue.submit([self.encoder.finish()]);
-        if let Some(err) = pollster::block_on(scope.pop()) {
-            return Err(BackendError::Validation { label: self.label, message: err.to_string() });
+        match pollster::block_on(scope.pop()) {
+            Some(err) => Err(BackendError::Validation { label: self.label, message: err.to_string() }),
+            None => Ok(()),
         }
-        self.ctx.wait_idle()
     }
 
     /// Submit without waiting (benchmarks queue several batches, then [`GpuContext::wait_idle`]).
     pub fn submit_nowait(self) {
+        self.ctx.count(&self.ctx.counters.submits, 1);
         self.ctx.queue.submit([self.encoder.finish()]);
     }
 }
