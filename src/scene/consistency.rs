@@ -70,7 +70,7 @@ pub(crate) fn voxel_centre(i: usize, res: usize, centre: DVec3, half: f64) -> DV
 
 /// Per voxel of a `res`³ grid over the cube `centre ± half`: (views that see it, views that reject
 /// it, the first view that rejects it).
-fn count(views: &[&View], prs: &[DMat4], centre: DVec3, half: f64, res: usize) -> Vec<(u16, u16, u16)> {
+pub(crate) fn count(views: &[&View], prs: &[DMat4], centre: DVec3, half: f64, res: usize) -> Vec<(u16, u16, u16)> {
     (0..res * res * res)
         .into_par_iter()
         .map(|i| {

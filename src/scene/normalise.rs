@@ -140,26 +140,17 @@ pub fn closest_point_to_axes(views: &[View]) -> DVec3 {
 
 /// Bounding sphere (centre, radius) of the visual hull in the cube `start ± half`, world frame.
 fn visual_hull_bound(path: &Path, views: &[View], start: DVec3, half: f64) -> Result<(DVec3, f64), DataError> {
-    use rayon::prelude::*;
-    let cams: Vec<(DMat4, &View)> = views.iter().map(|v| (v.camera.world_from_camera.inverse(), v)).collect();
+    let vs: Vec<&View> = views.iter().collect();
+    let prs: Vec<DMat4> = views.iter().map(|v| v.camera.world_from_camera.inverse()).collect();
     let step = 2.0 * half / HULL_RES as f64;
-    let min_seen = (views.len() / 2).max(1);
-    let kept: Vec<DVec3> = (0..HULL_RES * HULL_RES * HULL_RES)
-        .into_par_iter()
-        .filter_map(|i| {
-            let p = super::consistency::voxel_centre(i, HULL_RES, start, half);
-            // A view that does not see the point (outside its frame: the object may be cropped
-            // there) neither keeps nor rejects it.
-            let mut seen = 0;
-            for (cam_from_world, v) in &cams {
-                match super::consistency::verdict(v, cam_from_world, p) {
-                    -1 => {}
-                    0 => return None,
-                    _ => seen += 1,
-                }
-            }
-            (seen >= min_seen).then_some(p)
-        })
+    let min_seen = (views.len() / 2).max(1) as u16;
+    // A view that does not see a voxel (outside its frame: the object may be cropped there)
+    // neither keeps nor rejects it; any view that rejects it carves it.
+    let kept: Vec<DVec3> = super::consistency::count(&vs, &prs, start, half, HULL_RES)
+        .into_iter()
+        .enumerate()
+        .filter(|&(_, (seen, bg, _))| bg == 0 && seen >= min_seen)
+        .map(|(i, _)| super::consistency::voxel_centre(i, HULL_RES, start, half))
         .collect();
     if kept.is_empty() {
         return Err(DataError::new(path, "the masks' visual hull is empty: masks and cameras disagree"));

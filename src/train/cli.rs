@@ -331,23 +331,6 @@ pub fn train_stage1(
         key: key.clone(),
     };
 
-    let mut cfg = Stage1Config::for_scene(preset, opts.tracing, opts.init, &views, held.len(), opts.downscale);
-    cfg.seed = opts.seed;
-    cfg.keep_all_views = opts.keep_all_views;
-    if let Some(n) = opts.iterations {
-        cfg.iterations = n;
-    }
-    if let Some(n) = opts.rays {
-        cfg.rays = n;
-    }
-    if let Some(n) = opts.checkpoint_every {
-        cfg.checkpoint_every = n;
-    }
-    if let Some(n) = opts.init_steps {
-        cfg.hull_fit_steps = n;
-        cfg.mesh_fit_steps = n;
-    }
-    let cfg = super::stage1::apply_overrides(cfg, &opts.geometry_set)?;
     let mut curve: Vec<String> = Vec::new();
     let mut seconds_init = 0.0;
     let mut hull_report = serde_json::Value::Null;
@@ -364,6 +347,9 @@ pub fn train_stage1(
         if let Some(n) = opts.iterations {
             t.cfg.iterations = n;
         }
+        if !opts.geometry_set.is_empty() {
+            ctx.say("resuming: --geometry-set applies to a new run; this run keeps the settings it started with".to_string());
+        }
         curve = read_curve(&run_dir.join(LOSS_CURVE), t.step, 256 << 20);
         ctx.say(format!("resuming {} at step {} of {}", run_dir.display(), t.step, t.cfg.iterations));
         t
@@ -371,6 +357,23 @@ pub fn train_stage1(
         if resume {
             ctx.say(format!("no checkpoint in {}: starting a new run", run_dir.display()));
         }
+        let mut cfg = Stage1Config::for_scene(preset, opts.tracing, opts.init, &views, held.len(), opts.downscale);
+        cfg.seed = opts.seed;
+        cfg.keep_all_views = opts.keep_all_views;
+        if let Some(n) = opts.iterations {
+            cfg.iterations = n;
+        }
+        if let Some(n) = opts.rays {
+            cfg.rays = n;
+        }
+        if let Some(n) = opts.checkpoint_every {
+            cfg.checkpoint_every = n;
+        }
+        if let Some(n) = opts.init_steps {
+            cfg.hull_fit_steps = n;
+            cfg.mesh_fit_steps = n;
+        }
+        let cfg = super::stage1::apply_overrides(cfg, &opts.geometry_set)?;
         let mut t = Trainer::new(cfg.clone())?;
         if let Some(mesh_path) = &opts.init_mesh {
             let ti = Instant::now();

@@ -40,7 +40,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::stage1::{adam_host, checked_tensor, Model as Stage1Model, Preset, TrainData};
-use crate::backend::{Backend, BackendError};
+use crate::backend::{Backend, BackendError, Tensor};
 use crate::nn::adam::{AdamConfig, AdamState};
 use crate::nn::encoding::{encoding_forward_cpu, EncodingConfig};
 use crate::nn::field::{Encoder, FieldEncoding, PositionEncoder};
@@ -707,8 +707,8 @@ impl Stage2Model {
     }
 
     /// The `mii` baseline's raw SG rows `[n, mii_lobes·7]` at points, and the forward pass.
-    fn mii_forward(&self, backend: &Backend, x: &[[f32; 3]], train: bool) -> Result<(Vec<f32>, crate::nn::mlp::MlpForward), BackendError> {
-        let f = backend.mlp_forward(&self.indirect, &backend.upload(&self.ind_params), &backend.from_vec(self.encode_pos(x)), train)?;
+    fn mii_forward(&self, backend: &Backend, params: &Tensor, x: &[[f32; 3]], train: bool) -> Result<(Vec<f32>, crate::nn::mlp::MlpForward), BackendError> {
+        let f = backend.mlp_forward(&self.indirect, params, &backend.from_vec(self.encode_pos(x)), train)?;
         Ok((backend.to_vec(&f.output)?, f))
     }
 
@@ -718,8 +718,9 @@ impl Stage2Model {
             return Ok(vec![Vec::new(); x.len()]);
         }
         let mut out = Vec::with_capacity(x.len());
+        let params = backend.upload(&self.ind_params);
         for c in x.chunks(1 << 13) {
-            let (raw, _) = self.mii_forward(backend, c, false)?;
+            let (raw, _) = self.mii_forward(backend, &params, c, false)?;
             out.extend(raw.chunks_exact(self.cfg.mii_lobes * LIGHT_STRIDE).map(light_lobes));
         }
         Ok(out)
@@ -1158,7 +1159,7 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
     // The `mii` baseline's SGs at every point.
     let (mii_raw, mii_fwd) = match mode {
         IndirectMode::Mii => {
-            let (raw, f) = model.mii_forward(backend, &batch.x, true)?;
+            let (raw, f) = model.mii_forward(backend, &ind_p, &batch.x, true)?;
             (raw, Some(f))
         }
         _ => (Vec::new(), None),
