@@ -24,7 +24,7 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use crate::backend::gpu::{groups_1d, shaders, Access, KernelSpec};
+use crate::backend::gpu::{groups_1d, shaders, Access, GpuBuffer, GpuContext, KernelSpec};
 use crate::backend::{Backend, BackendError, Tensor};
 use crate::nn::encoding::{encoding_backward_cpu, encoding_forward_cpu, EncodingConfig};
 use crate::nn::mlp::{Activation, Init, Mlp, MlpConfig};
@@ -333,7 +333,7 @@ pub struct SdfField {
     pub mlp: Mlp,
     /// The parameters' copy on the device, re-uploaded only when their bytes change: tracing
     /// evaluates the field dozens of times per training step with the same parameters.
-    mirror: Mutex<Vec<(Vec<f32>, Tensor)>>,
+    mirror: Mutex<Vec<(Vec<f32>, GpuBuffer)>>,
 }
 
 impl SdfField {
@@ -416,22 +416,20 @@ impl SdfField {
     /// were the same (compared bit for bit against the host copy kept beside it, in parallel:
     /// far cheaper than the upload), else a fresh upload.
     fn on_device(&self, backend: &Backend, params: &[f32]) -> Tensor {
-        if !backend.is_gpu() || params.is_empty() {
+        let Some(g) = backend.gpu().filter(|_| !params.is_empty()) else {
             return backend.upload(params);
-        }
+        };
         let mut m = self.mirror.lock().expect("field mirror poisoned");
-        if let Some((_, Tensor::Device(b))) = m.iter().find(|(host, _)| same_bits(host, params)) {
+        if let Some((_, b)) = m.iter().find(|(host, _)| same_bits(host, params)) {
             return Tensor::Device(b.clone());
         }
-        let t = backend.upload(params);
+        let b = g.upload_f32("field.params", params);
         // The encoding's and the MLP's parameters, and one spare for a caller alternating sets.
         if m.len() >= 3 {
             m.remove(0);
         }
-        if let Tensor::Device(b) = &t {
-            m.push((params.to_vec(), Tensor::Device(b.clone())));
-        }
-        t
+        m.push((params.to_vec(), b.clone()));
+        Tensor::Device(b)
     }
 
     /// The MLP's input rows for points `x`, and the points as a device tensor where the
@@ -602,13 +600,13 @@ const FIELD_WGSL: &str = include_str!("../../shaders/field.wgsl");
 
 /// Launch `assemble` or `split` of `shaders/field.wgsl` over `total` outputs.
 fn row_kernel(
-    g: &crate::backend::gpu::GpuContext,
+    g: &GpuContext,
     entry: &str,
     l: &DeviceLayout,
     n: usize,
-    a: &crate::backend::gpu::GpuBuffer,
-    b: &crate::backend::gpu::GpuBuffer,
-    out: &crate::backend::gpu::GpuBuffer,
+    a: &GpuBuffer,
+    b: &GpuBuffer,
+    out: &GpuBuffer,
     total: usize,
 ) -> Result<(), BackendError> {
     if total > u32::MAX as usize {

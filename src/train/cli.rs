@@ -273,6 +273,26 @@ pub fn on_mask(v: &View, p: usize) -> bool {
 }
 
 /// What the held-out PSNR in the stage-1 and stage-2 reports is computed over.
+/// What a training loop's steps cost beyond their arithmetic, from a snapshot taken as the loop
+/// starts: the GPU's launches, waits and traffic (`gpu_per_step`, wgpu only) and the host's
+/// encoding time (`host_encoding_seconds_per_step`), each as a mean per step.
+pub(crate) struct StepCosts {
+    gpu: Option<crate::backend::gpu::GpuCounters>,
+    encoding: f64,
+}
+
+impl StepCosts {
+    pub(crate) fn start(backend: &Backend) -> Self {
+        Self { gpu: backend.gpu().map(|g| g.counters()), encoding: crate::nn::field::host_encoding_seconds() }
+    }
+
+    /// `(gpu_per_step, host_encoding_seconds_per_step)` over the `steps` since [`StepCosts::start`].
+    pub(crate) fn per_step(&self, backend: &Backend, steps: u64) -> (Option<crate::backend::gpu::GpuCounters>, f64) {
+        let gpu = self.gpu.zip(backend.gpu()).map(|(c0, g)| g.counters().per(&c0, steps));
+        (gpu, (crate::nn::field::host_encoding_seconds() - self.encoding) / steps.max(1) as f64)
+    }
+}
+
 pub const HELD_OUT_PSNR_PIXELS: &str = "covered by both the photo's mask and the render (the silhouette is scored by stage 1's mask IoU)";
 
 /// Squared sRGB error, summed over the channels, of a rendered colour at pixel `p` of the view's
@@ -450,8 +470,7 @@ pub fn train_stage1(
     pb.set_position(trainer.step);
     let t_loop = Instant::now();
     let step0 = trainer.step;
-    let gpu0 = backend.gpu().map(|g| g.counters());
-    let enc0 = crate::nn::field::host_encoding_seconds();
+    let costs = StepCosts::start(backend);
     let mut last = StepStats::default();
     let end = stop_at.unwrap_or(cfg.iterations).min(cfg.iterations);
     while trainer.step < end {
@@ -493,6 +512,7 @@ pub fn train_stage1(
     let eval_views: Vec<&View> = if held.is_empty() { views.iter().step_by((views.len() / 4).max(1)).take(4).copied().collect() } else { held.iter().take(8).copied().collect() };
     let ev = evaluate_views(backend, &trainer.model, &cfg.trace, &eval_views, 128 * 128)?;
     let weak = ev.mask_iou < 0.8 || trainer.skipped * 10 > trainer.step.max(1);
+    let (gpu_per_step, encoding_per_step) = costs.per_step(backend, trainer.step - step0);
     let report = serde_json::json!({
         "stage": "geometry",
         "preset": cfg.preset,
@@ -506,8 +526,8 @@ pub fn train_stage1(
         "skipped_steps": trainer.skipped,
         "last": last,
         "it_per_s": its,
-        "gpu_per_step": gpu0.zip(backend.gpu()).map(|(c0, g)| g.counters().per(&c0, trainer.step - step0)),
-        "host_encoding_seconds_per_step": (crate::nn::field::host_encoding_seconds() - enc0) / (trainer.step - step0).max(1) as f64,
+        "gpu_per_step": gpu_per_step,
+        "host_encoding_seconds_per_step": encoding_per_step,
         "hull_init": hull_report,
         "mesh_init": mesh_report,
         "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr_pixels": HELD_OUT_PSNR_PIXELS, "psnr": ev.psnr, "mask_iou": ev.mask_iou, "per_view": ev.per_view, "seconds": t_eval.elapsed().as_secs_f64() },

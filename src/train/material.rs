@@ -270,8 +270,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     pb.set_position(trainer.step);
     let t_loop = Instant::now();
     let step0 = trainer.step;
-    let gpu0 = backend.gpu().map(|g| g.counters());
-    let enc0 = crate::nn::field::host_encoding_seconds();
+    let costs = super::cli::StepCosts::start(backend);
     let end = stop_at.unwrap_or(cfg.iterations).min(cfg.iterations);
     let mut last = Stage2Stats::default();
     let mut retrace_s = 0.0;
@@ -362,6 +361,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
             crate::scene::texture::TEXTURELESS_BELOW
         ));
     }
+    let (gpu_per_step, encoding_per_step) = costs.per_step(backend, trainer.step - step0);
     let report = serde_json::json!({
         "stage": "material",
         "preset": cfg.preset,
@@ -380,8 +380,8 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "skipped_steps": trainer.skipped,
         "last": last,
         "it_per_s": its,
-        "gpu_per_step": gpu0.zip(backend.gpu()).map(|(c0, g)| g.counters().per(&c0, trainer.step - step0)),
-        "host_encoding_seconds_per_step": (crate::nn::field::host_encoding_seconds() - enc0) / (trainer.step - step0).max(1) as f64,
+        "gpu_per_step": gpu_per_step,
+        "host_encoding_seconds_per_step": encoding_per_step,
         "material": { "mean_albedo": mean_alb, "mean_roughness": mean_rough },
         "photo_texture": texture,
         "environment": {

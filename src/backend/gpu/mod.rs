@@ -164,7 +164,7 @@ struct Counters {
     upload_bytes: AtomicU64,
 }
 
-/// A snapshot of [`GpuContext::counters`]; `per(steps, earlier)` gives the mean per step.
+/// A snapshot of [`GpuContext::counters`]; `later.per(&earlier, steps)` gives the mean per step between them.
 #[derive(Clone, Copy, Debug, Default, serde::Serialize)]
 pub struct GpuCounters {
     pub dispatches: f64,
@@ -634,12 +634,6 @@ impl Batch<'_> {
             Some(err) => Err(BackendError::Validation { label: self.label, message: err.to_string() }),
             None => Ok(()),
         }
-    }
-
-    /// Submit without waiting (benchmarks queue several batches, then [`GpuContext::wait_idle`]).
-    pub fn submit_nowait(self) {
-        self.ctx.count(&self.ctx.counters.submits, 1);
-        self.ctx.queue.submit([self.encoder.finish()]);
     }
 }
 
