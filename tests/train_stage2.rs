@@ -539,11 +539,52 @@ fn rays_leaving_near_the_tangent_plane_are_not_blocked_by_their_own_surface() {
 }
 
 #[test]
+fn colour_position_gradient_matches_central_differences() {
+    // `--refine-geometry` moves each point along its ray by the colour term's position gradient
+    // (`d_point`): through the material (PE or hash grid, with the raw position beside the grid)
+    // and, for `mii`, its SGs at the point. Each point moved alone, against central differences of
+    // the colour term.
+    use pii_bake::nn::field::FieldEncoding;
+    use pii_bake::train::stage2::loss_and_grad_with;
+    let b = Backend::cpu();
+    let w = weights();
+    for (indirect, grid) in [(IndirectMode::Ours, false), (IndirectMode::Ours, true), (IndirectMode::Mii, false)] {
+        let mut cfg = tiny(indirect, DecoderMode::Separate);
+        cfg.material_encoding = FieldEncoding::Frequency { n_freqs: 2 };
+        if grid {
+            cfg = cfg.with_material_grid(24, 12);
+        }
+        let model = Stage2Model::new(&cfg).unwrap();
+        let bb = boundary_batch(&model);
+        let g = loss_and_grad_with(&b, &model, &bb, &w, 7, true).unwrap();
+        assert_eq!(g.d_point.len(), bb.len());
+        let mut any = 0.0f64;
+        for i in 0..bb.len() {
+            for a in 0..3 {
+                let h = 3e-4f32;
+                let at = |d: f32| {
+                    let mut m = bb.clone();
+                    m.x[i][a] += d;
+                    loss_and_grad_with(&b, &model, &m, &w, 7, true).unwrap().stats.rgb
+                };
+                let fd = (at(h) - at(-h)) / (2.0 * h as f64);
+                let an = g.d_point[i][a];
+                any = any.max(an.abs());
+                let err = (an - fd).abs() / (2e-5 + 0.02 * fd.abs().max(an.abs()));
+                assert!(err <= 1.0, "{indirect:?} grid {grid}: point {i} axis {a}: analytic {an:.6e} vs central difference {fd:.6e}");
+            }
+        }
+        assert!(any > 1e-3, "{indirect:?} grid {grid}: the colour does not depend on the points");
+    }
+}
+
+#[test]
 fn wgpu_matches_cpu_on_the_refined_geometry_gradient() {
     let gpu = Backend::wgpu_for_tests().unwrap_or_else(|e| panic!("the test command installs lavapipe: {e}"));
     let cpu = Backend::cpu();
     let sdf = tiny_sdf();
     let mut cfg = tiny(IndirectMode::Ours, DecoderMode::Separate);
+    cfg.material_encoding = pii_bake::nn::field::FieldEncoding::Frequency { n_freqs: 2 };
     cfg.refine_geometry = true;
     cfg.geometry_eikonal_points = 8;
     let model = Stage2Model::new(&cfg).unwrap();
@@ -552,10 +593,11 @@ fn wgpu_matches_cpu_on_the_refined_geometry_gradient() {
     let w = weights();
     let (a, c) = (loss_and_grad_geometry(&cpu, &model, &bb, &w, 7, &sdf).unwrap(), loss_and_grad_geometry(&gpu, &model, &bb, &w, 7, &sdf).unwrap());
     assert!((a.stats.loss - c.stats.loss).abs() < 1e-5 * (1.0 + a.stats.loss.abs()), "{} vs {}", a.stats.loss, c.stats.loss);
-    // The colour term's derivative along each ray is a central difference over 2·5e-4 of two f32
-    // renders (material and F_ind on the backend), so it carries their rounding times ~1e3: the worst
-    // entry differs by 2.4e-3 of the largest (5e-5 with that term left out).
+    // PE2 material as in the central-difference test: with PE10 the colour's derivative along a ray
+    // swings by its 2^9 frequency over the ulps by which the backends' Newton steps place a point
+    // (2.4e-3 of the largest entry on lavapipe, 3.5e-2 on an H100), which is the loss's conditioning,
+    // not a kernel's error. With PE2 the worst entry differs by 3.5e-5 of the largest on lavapipe.
     let scale = a.d_sdf.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-6);
     let (i, worst) = a.d_sdf.iter().zip(&c.d_sdf).map(|(p, q)| (p - q).abs()).enumerate().fold((0, 0.0f32), |m, (i, d)| if d > m.1 { (i, d) } else { m });
-    assert!(worst <= 5e-3 * scale + 1e-6, "d_sdf[{i}]: cpu {} vs wgpu {}, {:.2e} of the largest entry {scale}", a.d_sdf[i], c.d_sdf[i], worst / scale);
+    assert!(worst <= 1e-3 * scale + 1e-6, "d_sdf[{i}]: cpu {} vs wgpu {}, {:.2e} of the largest entry {scale}", a.d_sdf[i], c.d_sdf[i], worst / scale);
 }

@@ -26,7 +26,7 @@ use rayon::prelude::*;
 
 use crate::backend::gpu::{groups_1d, shaders, Access, GpuBuffer, GpuContext, KernelSpec};
 use crate::backend::{Backend, BackendError, Tensor};
-use crate::nn::encoding::{encoding_backward_cpu, encoding_forward_cpu, EncodingConfig};
+use crate::nn::encoding::{encoding_backward_cpu, encoding_forward_cpu, frequency_backward_cpu, hash_grid_backward_x_cpu, EncodingConfig};
 use crate::nn::mlp::{Activation, Init, Mlp, MlpConfig};
 
 /// An input encoding the field can use. Only parameter gradients are needed (x-gradients are
@@ -165,18 +165,41 @@ impl PositionEncoder {
         if self.encoding.num_params() == 0 {
             return Vec::new();
         }
-        let (od, rd) = (self.out_dim(), self.raw_dim());
+        encoding_backward_cpu(&self.encoding, params, x, 3, &self.encoding_columns(d_enc), false).0
+    }
+
+    /// `dL/d(encoding)` rows without the raw columns, inactive levels' columns zeroed.
+    fn encoding_columns(&self, d_enc: &[f32]) -> Vec<f32> {
+        let rd = self.raw_dim();
         let cut = self.inactive_columns();
-        let d: Vec<f32> = d_enc
-            .chunks_exact(od)
+        d_enc
+            .chunks_exact(self.out_dim())
             .flat_map(|r| {
                 r[rd..].iter().enumerate().map(move |(j, &v)| match cut {
                     Some((a, b)) if (a..b).contains(&(j + rd)) => 0.0,
                     _ => v,
                 })
             })
-            .collect();
-        encoding_backward_cpu(&self.encoding, params, x, 3, &d, false).0
+            .collect()
+    }
+
+    /// `dL/dx` `[n, 3]` from `dL/d(encoding)` `[n, out_dim]`: the encoding's own position
+    /// derivative (analytic for both encodings; a hash grid's is its trilinear interpolation's)
+    /// plus the raw columns, which pass straight through.
+    pub fn backward_x(&self, params: &[f32], x: &[f32], d_enc: &[f32]) -> Vec<f32> {
+        timed(|| {
+            let d = self.encoding_columns(d_enc);
+            let mut dx = match self.encoding {
+                EncodingConfig::Frequency { n_freqs, include_input } => frequency_backward_cpu(n_freqs, include_input, x, 3, &d),
+                EncodingConfig::HashGrid { .. } => hash_grid_backward_x_cpu(&self.encoding, params, x, &d),
+            };
+            if self.raw_xyz {
+                for (d, r) in dx.chunks_exact_mut(3).zip(d_enc.chunks_exact(self.out_dim())) {
+                    d.iter_mut().zip(&r[..3]).for_each(|(a, b)| *a += b);
+                }
+            }
+            dx
+        })
     }
 }
 

@@ -42,7 +42,7 @@ use serde::{Deserialize, Serialize};
 use super::stage1::{adam_host, checked_tensor, Model as Stage1Model, Preset, TrainData};
 use crate::backend::{Backend, BackendError, Tensor};
 use crate::nn::adam::{AdamConfig, AdamState};
-use crate::nn::encoding::{encoding_forward_cpu, EncodingConfig};
+use crate::nn::encoding::{encoding_backward_cpu, encoding_forward_cpu, EncodingConfig};
 use crate::nn::field::{Encoder, FieldEncoding, PositionEncoder};
 use crate::nn::mlp::{Activation, Init, Mlp, MlpConfig};
 use crate::nn::params::ParamStore;
@@ -1075,8 +1075,11 @@ pub struct Stage2Grads {
     /// The batch's render (linear RGB), for figures.
     pub rgb: Vec<[f32; 3]>,
     /// With [`loss_and_grad_with`]'s `geometry` flag: per point the gradient with respect to the
-    /// shading normal, per slot with respect to the boundary offset.
+    /// shading normal and the colour term's gradient with respect to the point's position
+    /// (through the material and the `mii` SGs at it; the normal and the hits held), per slot
+    /// with respect to the boundary offset.
     pub d_normal: Vec<[f64; 3]>,
+    pub d_point: Vec<[f64; 3]>,
     pub d_offset: Vec<f64>,
 }
 
@@ -1218,6 +1221,7 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
     let mut se = 0.0;
     let mut d_mat = vec![0.0f32; b * 4];
     let mut d_mii = vec![0.0f32; mii_raw.len()];
+    let mut d_mii_rgb = vec![0.0f32; if geometry { mii_raw.len() } else { 0 }];
     let mut fit = 0.0;
     let mut d_offset = if geometry { vec![0.0f64; slots] } else { Vec::new() };
     for (i, p) in per.iter().enumerate() {
@@ -1233,6 +1237,11 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
             let st = stored_lobe_grad(raw, l.lambda, &g);
             for (q, v) in st.iter().enumerate() {
                 d_mii[i * mstride + j * LIGHT_STRIDE + q] = *v as f32;
+            }
+            if geometry {
+                for (q, v) in stored_lobe_grad(raw, l.lambda, &p.dl[k + j]).iter().enumerate() {
+                    d_mii_rgb[i * mstride + j * LIGHT_STRIDE + q] = *v as f32;
+                }
             }
         }
         se += p.se;
@@ -1317,6 +1326,8 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
             }
         }
     }
+    // The colour term alone, before the smoothness adds to the material's gradient.
+    let d_mat_rgb = if geometry { d_mat.clone() } else { Vec::new() };
     // Effective → stored parameters: λ = exp(raw) (floored), μ = |raw|.
     let mut d_light_f = vec![0.0f32; k * LIGHT_STRIDE];
     for (j, l) in lobes.iter().enumerate() {
@@ -1403,6 +1414,34 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
         Vec::new()
     };
     d_enc.extend(backend.to_vec(&ge.d_params)?);
+    // The colour term's gradient with respect to the points: back through the decoders on the
+    // unperturbed latent, the encoder and the position encoding, and for `mii` through its SGs.
+    let mut d_point = Vec::new();
+    if geometry {
+        let mut dz = vec![0.0f32; b * ld];
+        for ((m, o), (pt, f0, _)) in model.decoders.iter().zip(&dec_fwd) {
+            let od = m.out_dim();
+            let rows: Vec<f32> = (0..b)
+                .flat_map(|i| (*o..*o + od).map(move |c| (i, c)))
+                .map(|(i, c)| match (c, &constant) {
+                    (3, Some(_)) => 0.0,
+                    (3, None) => d_mat_rgb[4 * i + 3] * ROUGHNESS_SPAN,
+                    _ => d_mat_rgb[4 * i + c],
+                })
+                .collect();
+            let g = backend.to_vec(&backend.mlp_backward(m, pt, f0, &backend.from_vec(rows))?.d_input)?;
+            dz.iter_mut().zip(&g).for_each(|(a, c)| *a += c);
+        }
+        let ge = backend.mlp_backward(&model.encoder, &enc_p, &zf, &backend.from_vec(dz))?;
+        let xs: &[f32] = bytemuck::cast_slice(&batch.x);
+        let mut dx = model.mat_enc.backward_x(model.enc_split().0, xs, &backend.to_vec(&ge.d_input)?);
+        if let Some(f) = &mii_fwd {
+            let g = backend.to_vec(&backend.mlp_backward(&model.indirect, &ind_p, f, &backend.from_vec(d_mii_rgb))?.d_input)?;
+            let dm = encoding_backward_cpu(&model.cfg.pos_encoding(), &[], xs, 3, &g, true).1.unwrap_or_default();
+            dx.iter_mut().zip(&dm).for_each(|(a, c)| *a += c);
+        }
+        d_point = dx.chunks_exact(3).map(|d| [d[0] as f64, d[1] as f64, d[2] as f64]).collect();
+    }
 
     let loss = loss_rgb + smooth + w.kl as f64 * kl + fit;
     let stats = Stage2Stats {
@@ -1418,7 +1457,7 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
     };
     let rgb = per.iter().map(|p| p.rgb.map(|v| v as f32)).collect();
     let d_normal = if geometry { per.iter().map(|p| p.dn).collect() } else { Vec::new() };
-    Ok(Stage2Grads { stats, d_enc, d_dec, d_light: d_light_f, d_ind, d_sdf: Vec::new(), rgb, d_normal, d_offset })
+    Ok(Stage2Grads { stats, d_enc, d_dec, d_light: d_light_f, d_ind, d_sdf: Vec::new(), rgb, d_normal, d_point, d_offset })
 }
 
 // ---- the surface cache ---------------------------------------------------------------------
@@ -1963,9 +2002,9 @@ fn render_points_f64(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
 /// (stage 1's implicit surface point; no move where `∇f·r ≥ −0.05`), shaded with the normal
 /// `∇f(x0)/|∇f(x0)|` (turned toward the camera as the cache does). The loss reaches the SDF:
 /// - through the shading normal (the exact gradient of the shading, [`shade_normal_grad`]);
-/// - through the point's move along the ray: the colour term's derivative along `r` is a central
-///   difference of the forward at `x ± ε r` (the material moves with the point; the smoothness and
-///   KL regularisers see the point fixed);
+/// - through the point's move along the ray: the colour term's derivative along `r` is its exact
+///   position gradient (`Stage2Grads::d_point`: the material, and `mii`'s SGs, move with the point;
+///   the smoothness and KL regularisers see the point fixed);
 /// - through the boundary lights: a grazing occluder that recedes from the ray by
 ///   `f(x';θ) − f(x';θ_traced)` opens the ray (see [`boundary_visibility`]); with
 ///   `--boundary detached` this path is cut as the axis path is;
@@ -1974,7 +2013,6 @@ fn render_points_f64(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
 /// Secondary hits `x'`, `n'` (F_ind's inputs) are held at their traced values between re-traces of
 /// the cache (every `geometry_retrace_every` iterations).
 pub fn loss_and_grad_geometry(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch, w: &Stage2Weights, noise_seed: u64, sdf: &Stage1Model) -> Result<Stage2Grads, BackendError> {
-    const RAY_EPS: f64 = 5e-4;
     let b = batch.len();
     let field = &sdf.field;
     // Secondary hits (their SDF gives each boundary light's offset) and uniform eikonal points
@@ -2032,33 +2070,15 @@ pub fn loss_and_grad_geometry(backend: &Backend, model: &Stage2Model, batch: &St
         }
         // Boundary offsets: how far each hit's occluder has receded from its ray since the trace.
         gb.boundary_offset = (0..nh).map(|s| (o.sdf[b + s] as f64 - f0[s]) / hit_t[s]).collect();
-        let colour = || -> Result<(Stage2Grads, Vec<f64>), BackendError> {
-            let out = loss_and_grad_with(backend, model, &gb, w, noise_seed, true)?;
-            // The colour term's derivative along each ray.
-            let inv3b = 1.0 / (3.0 * b as f64);
-            let rgb_loss = |x: &Stage2Batch| -> Result<Vec<f64>, BackendError> {
-                let c = render_points_f64(backend, model, x)?;
-                Ok(c.iter().zip(&x.target).map(|(c, t)| (0..3).map(|k| (srgb_with_derivative(c[k]).0 - t[k] as f64).abs() * inv3b).sum()).collect())
-            };
-            let shifted = |sign: f64| {
-                let mut x = gb.clone();
-                for i in 0..b {
-                    let v = f64x3(batch.v[i]);
-                    x.x[i] = [0, 1, 2].map(|a| (gb.x[i][a] as f64 - sign * RAY_EPS * v[a]) as f32);
-                }
-                x
-            };
-            let (lp, lm) = (rgb_loss(&shifted(1.0))?, rgb_loss(&shifted(-1.0))?);
-            let ds: Vec<f64> = lp.iter().zip(&lm).map(|(p, m)| (p - m) / (2.0 * RAY_EPS)).collect();
-            Ok((out, ds))
-        };
-        let (out, ds) = match colour() {
+        let out = match loss_and_grad_with(backend, model, &gb, w, noise_seed, true) {
             Ok(v) => v,
             Err(e) => {
                 step = Err(e);
                 return (0.0, g);
             }
         };
+        // The colour term's derivative along each ray.
+        let ds: Vec<f64> = (0..b).map(|i| -dot3(out.d_point[i], f64x3(batch.v[i]))).collect();
         for i in 0..b {
             let (s, gr, len, sign) = moves[i];
             let gv = [0, 1, 2].map(|a| o.gradient[3 * i + a] as f64);
