@@ -579,6 +579,87 @@ fn colour_position_gradient_matches_central_differences() {
 }
 
 #[test]
+fn secondary_rays_marching_on_the_sdf_grid_find_the_networks_occluders() {
+    // Stage 2's secondary rays march on the frozen SDF sampled on a grid and hand their hits to the
+    // network. Against tracing with the network at every step: the same rays blocked except a few
+    // grazing the silhouette, the hit points on the network's surface and where the network puts
+    // them.
+    use pii_bake::train::stage2::SurfaceCache;
+    let b = Backend::cpu();
+    // The paper preset's geometric initialisation at a small width: close to the SDF of the sphere
+    // r = 0.5 (the trained fields are eikonal; a field far from one overshoots either way).
+    let sdf = {
+        use pii_bake::train::stage1::{InitMode, Stage1Config};
+        let mut c = Stage1Config::for_scene(Preset::Paper, pii_bake::render::TraceMode::Classic, InitMode::Sphere, &[], 0, 1);
+        c.field.init_radius = 0.5;
+        c.field.feature_dim = 0;
+        c.field.widths = vec![64, 64, 64];
+        c.field.skip_layers = vec![];
+        c.radiance_widths = vec![8];
+        pii_bake::train::stage1::Model::new(&c).unwrap()
+    };
+    let mut cfg = tiny(IndirectMode::Ours, DecoderMode::Separate);
+    cfg.lobes = 1;
+    // A 21×21 patch of points on the plane z = -0.7 under the sphere, a lobe tilted off the
+    // vertical: about half of the rays meet it.
+    let mut cache = SurfaceCache::default();
+    for i in 0..21 {
+        for j in 0..21 {
+            cache.x.push([-0.5 + 0.05 * i as f32, -0.5 + 0.05 * j as f32, -0.7]);
+            cache.n.push([0.0, 0.0, 1.0]);
+            cache.v.push([0.0, 0.0, 1.0]);
+            cache.target.push([0.5; 3]);
+        }
+    }
+    let axis = norm([0.2, 0.1, 1.0]);
+    let trace = |nodes: usize| {
+        let mut c = cache.clone();
+        let mut cf = cfg.clone();
+        cf.secondary_grid_nodes = nodes;
+        c.trace_lobe(&b, &sdf, &cf, 0, axis).unwrap();
+        assert_eq!(c.grid.is_some(), nodes > 0);
+        c
+    };
+    let (net, grid) = (trace(0), trace(65));
+    let n = cache.len();
+    let (mut both, mut differ) = (0, 0);
+    for i in 0..n {
+        match (net.hit_index[i], grid.hit_index[i]) {
+            (u32::MAX, u32::MAX) => {}
+            (a, g) if a != u32::MAX && g != u32::MAX => {
+                both += 1;
+                let (xa, xg) = (net.lobe_hits[0][a as usize].0, grid.lobe_hits[0][g as usize].0);
+                // Both at the ray's first crossing of the network's zero level: the grid's hit on
+                // it, the network's within its threshold (this field's slope along the rays is
+                // 1.2 head-on, so tracing with it overshoots by up to 0.07; the secant step after
+                // the grid does not depend on the slope).
+                let o = cache.x[i];
+                let f_at = |t: f32| sdf.sdf(&b, &[o[0] + t * axis[0], o[1] + t * axis[1], o[2] + t * axis[2]]).unwrap()[0];
+                let mut hi = 0.01f32;
+                while f_at(hi) > 0.0 {
+                    hi += 0.01;
+                }
+                let mut lo = hi - 0.01;
+                for _ in 0..30 {
+                    let m = 0.5 * (lo + hi);
+                    if f_at(m) > 0.0 {
+                        lo = m;
+                    } else {
+                        hi = m;
+                    }
+                }
+                let along = |x: [f32; 3]| (0..3).map(|q| (x[q] - o[q]) * axis[q]).sum::<f32>();
+                assert!((along(xg) - lo).abs() < 2e-3, "point {i}: the grid's hit at t = {} (crossing at {lo})", along(xg));
+                assert!((along(xa) - lo).abs() < 0.1, "point {i}: the network's hit {xa:?} at t = {} (crossing at {lo})", along(xa));
+            }
+            _ => differ += 1,
+        }
+    }
+    assert!(both > n / 4, "{both} of {n} rays blocked");
+    assert!(differ * 50 <= n, "{differ} of {n} rays blocked on one and open on the other");
+}
+
+#[test]
 fn wgpu_matches_cpu_on_the_refined_geometry_gradient() {
     let gpu = Backend::wgpu_for_tests().unwrap_or_else(|e| panic!("the test command installs lavapipe: {e}"));
     let cpu = Backend::cpu();

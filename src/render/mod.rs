@@ -34,6 +34,7 @@
 //! [`volume`]: NeuS's volume rendering of the SDF (opacity compositing along samples), which
 //! stage 1 uses at the start of a run to open concavities a first hit cannot see into.
 
+pub mod grid;
 pub mod volume;
 
 use crate::backend::BackendError;

@@ -134,6 +134,16 @@ pub const GRID_SMOOTH_WEIGHT: f32 = 1.0;
 /// The stage-2 configuration for a scene and the options, with the reasons for its sizes.
 /// `sizes`: stage 1's sizes for the scene (the fast preset's material grid takes its resolution and
 /// table size from them).
+/// Nodes per axis of the grid stage 2's secondary rays march on ([`Stage2Config::secondary_grid_nodes`]):
+/// over the bounding cube (2 units), a cell of 1.5 pixel footprints, the cell the exported mesh is
+/// extracted at (`SceneSizes::mesh_resolution`), so the occluders the rays see are the asset's.
+/// Bowl (32 lobes, the cache as first traced), network / 121 nodes / 181 nodes (one footprint):
+/// blocked pairs 20.2 / 19.8 / 20.0 %, boundary lights 2.86 / 2.15 / 2.42 % of them, cache 41.0 /
+/// 11.4 / 16.1 s, 30 steps' re-tracing 9.4 / 1.8 / 2.1 s.
+pub fn secondary_grid_nodes(sizes: &super::stage1::SceneSizes) -> usize {
+    ((2.0 / (1.5 * sizes.pixel_footprint.max(1e-6))).round() as usize + 1).clamp(64, 256)
+}
+
 pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &super::stage1::SceneSizes, opts: &MaterialOptions, seed: u64) -> anyhow::Result<(Stage2Config, serde_json::Value)> {
     let mut cfg = Stage2Config::new(preset, data.foreground_pixels());
     if preset == Preset::Fast {
@@ -149,6 +159,7 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &s
         cfg = cfg.with_material_grid(material_grid_finest(sizes), sizes.grid_log2_table);
         cfg.smooth_weight = GRID_SMOOTH_WEIGHT;
     }
+    cfg.secondary_grid_nodes = secondary_grid_nodes(sizes);
     cfg.seed = seed;
     cfg.indirect = opts.indirect;
     cfg.roughness = opts.roughness;
@@ -370,6 +381,10 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "sizes": { "lobes": cfg.lobes, "lobes_without_energy": idle, "points": cache.len(), "batch": cfg.batch, "parameters": trainer.model.num_params(), "why": why },
         "cache": { "points": cache.len(), "blocked_fraction": cache.blocked_fraction(), "boundary_fraction": cache.boundary_fraction(cfg.boundary_epsilon), "field_evaluations": cache.evaluations, "seconds": seconds_cache, "lobes_retraced": cache.retraced, "seconds_retracing": retrace_s,
                    "secondary_rays": cache.secondary_rays, "steps_per_secondary_ray": cache.steps_per_secondary_ray(),
+                   "secondary_march": match &cache.grid {
+                       Some(g) => serde_json::json!({ "on": "the SDF sampled on a grid, hits placed on the network's surface", "nodes": g.nodes(), "spacing": g.spacing(), "seconds_sampling": cache.grid_seconds }),
+                       None => serde_json::json!({ "on": "the network at every step" }),
+                   },
                    "rays_per_iteration_without_cache": cfg.secondary_rays_per_batch() },
         "geometry": if cfg.refine_geometry {
             serde_json::json!({ "refined": true, "lr": cfg.lr_geometry, "eikonal_weight": cfg.geometry_eikonal_weight, "cache_rebuilds": geometry_retraces, "retrace_every": cfg.geometry_retrace_every, "last_eikonal": last.eikonal })
@@ -495,7 +510,9 @@ pub fn render_view_lit(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, m
         for (e, env) in envs.iter().enumerate() {
             let rgb = match env {
                 None => {
-                    let cfg = &model.cfg;
+                    // Each chunk's cache is new, so a grid would be sampled per chunk: the renderer
+                    // marches its secondary rays with the network, as `relight_points` does.
+                    let cfg = &Stage2Config { secondary_grid_nodes: 0, ..model.cfg.clone() };
                     c.refresh(backend, sdf, cfg, &model.axes())?;
                     let all: Vec<usize> = (0..c.len()).collect();
                     super::stage2::render_points(backend, model, &c.batch(&all, cfg.lobes))?
