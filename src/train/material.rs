@@ -131,9 +131,6 @@ pub fn material_grid_finest(sizes: &super::stage1::SceneSizes) -> u32 {
 /// Latent smoothness weight of the fast preset's material grid.
 pub const GRID_SMOOTH_WEIGHT: f32 = 1.0;
 
-/// The stage-2 configuration for a scene and the options, with the reasons for its sizes.
-/// `sizes`: stage 1's sizes for the scene (the fast preset's material grid takes its resolution and
-/// table size from them).
 /// Nodes per axis of the grid stage 2's secondary rays march on ([`Stage2Config::secondary_grid_nodes`]):
 /// over the bounding cube (2 units), a cell of 1.5 pixel footprints, the cell the exported mesh is
 /// extracted at (`SceneSizes::mesh_resolution`), so the occluders the rays see are the asset's.
@@ -144,6 +141,9 @@ pub fn secondary_grid_nodes(sizes: &super::stage1::SceneSizes) -> usize {
     ((2.0 / (1.5 * sizes.pixel_footprint.max(1e-6))).round() as usize + 1).clamp(64, 256)
 }
 
+/// The stage-2 configuration for a scene and the options, with the reasons for its sizes.
+/// `sizes`: stage 1's sizes for the scene (the fast preset's material grid takes its resolution and
+/// table size from them).
 pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &super::stage1::SceneSizes, opts: &MaterialOptions, seed: u64) -> anyhow::Result<(Stage2Config, serde_json::Value)> {
     let mut cfg = Stage2Config::new(preset, data.foreground_pixels());
     if preset == Preset::Fast {
