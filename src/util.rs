@@ -115,6 +115,13 @@ pub fn rng(seed: u64) -> rand::rngs::StdRng {
     rand::rngs::StdRng::seed_from_u64(seed)
 }
 
+/// Whether two slices hold the same bits (a parallel compare: parameter vectors are megabytes).
+pub fn same_bits(a: &[f32], b: &[f32]) -> bool {
+    use rayon::prelude::*;
+    let (a, b): (&[u32], &[u32]) = (bytemuck::cast_slice(a), bytemuck::cast_slice(b));
+    a.len() == b.len() && a.par_chunks(1 << 16).zip(b.par_chunks(1 << 16)).all(|(x, y)| x == y)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -657,6 +657,15 @@ fn secondary_rays_marching_on_the_sdf_grid_find_the_networks_occluders() {
     }
     assert!(both > n / 4, "{both} of {n} rays blocked");
     assert!(differ * 50 <= n, "{differ} of {n} rays blocked on one and open on the other");
+    // One sample per SDF, shared by every cache and render of it; a changed SDF is sampled anew.
+    let (g0, _) = sdf.sdf_grid(&b, 65).unwrap();
+    let (g1, s1) = sdf.sdf_grid(&b, 65).unwrap();
+    assert!(std::sync::Arc::ptr_eq(&g0, &g1) && s1 == 0.0);
+    assert!(std::sync::Arc::ptr_eq(&g0, grid.grid.as_ref().unwrap()));
+    let mut moved = sdf;
+    moved.sdf_params[0] += 1e-3;
+    let (g2, s2) = moved.sdf_grid(&b, 65).unwrap();
+    assert!(!std::sync::Arc::ptr_eq(&g0, &g2) && s2 > 0.0);
 }
 
 #[test]

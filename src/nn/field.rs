@@ -22,8 +22,6 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Mutex;
 use std::time::Instant;
 
-use rayon::prelude::*;
-
 use crate::backend::gpu::{groups_1d, shaders, Access, GpuBuffer, GpuContext, KernelSpec};
 use crate::backend::{Backend, BackendError, Tensor};
 use crate::nn::encoding::{encoding_backward_cpu, encoding_forward_cpu, frequency_backward_cpu, hash_grid_backward_x_cpu, EncodingConfig};
@@ -443,7 +441,7 @@ impl SdfField {
             return backend.upload(params);
         };
         let mut m = self.mirror.lock().expect("field mirror poisoned");
-        if let Some((_, b)) = m.iter().find(|(host, _)| same_bits(host, params)) {
+        if let Some((_, b)) = m.iter().find(|(host, _)| crate::util::same_bits(host, params)) {
             return Tensor::Device(b.clone());
         }
         let b = g.upload_f32("field.params", params);
@@ -604,11 +602,6 @@ impl SdfField {
 }
 
 /// Whether two slices hold the same bits (NaN included), compared in parallel blocks.
-fn same_bits(a: &[f32], b: &[f32]) -> bool {
-    let (a, b): (&[u32], &[u32]) = (bytemuck::cast_slice(a), bytemuck::cast_slice(b));
-    a.len() == b.len() && a.par_chunks(1 << 16).zip(b.par_chunks(1 << 16)).all(|(x, y)| x == y)
-}
-
 /// Mirrors `RowParams` in `shaders/field.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]

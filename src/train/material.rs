@@ -19,7 +19,7 @@ use crate::backend::{Backend, BackendError};
 use crate::context::Context;
 use crate::export::{AssetArgs, ExportConfig, ExportReport};
 use crate::mesh::field::{MaterialField, MaterialSamples};
-use crate::render::{trace, trace_secondary, Rays, TraceConfig};
+use crate::render::{trace, Rays, TraceConfig};
 use crate::scene::{Camera, Format, ReadOptions, View};
 use crate::sg::env::LatlongConvention;
 use crate::sg::shade::Sg;
@@ -510,9 +510,7 @@ pub fn render_view_lit(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, m
         for (e, env) in envs.iter().enumerate() {
             let rgb = match env {
                 None => {
-                    // Each chunk's cache is new, so a grid would be sampled per chunk: the renderer
-                    // marches its secondary rays with the network, as `relight_points` does.
-                    let cfg = &Stage2Config { secondary_grid_nodes: 0, ..model.cfg.clone() };
+                    let cfg = &model.cfg;
                     c.refresh(backend, sdf, cfg, &model.axes())?;
                     let all: Vec<usize> = (0..c.len()).collect();
                     super::stage2::render_points(backend, model, &c.batch(&all, cfg.lobes))?
@@ -540,18 +538,15 @@ pub fn render_view_lit(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, m
 #[allow(clippy::too_many_arguments)]
 fn relight_points(backend: &Backend, sdf: &Stage1Model, model: &Stage2Model, c: &SurfaceCache, albedo: &[[f32; 3]], rough: &[f32], lobes: &[Sg<f64>]) -> Result<Vec<[f32; 3]>, BackendError> {
     let cfg = &model.cfg;
+    let grid = super::stage2::secondary_grid(backend, sdf, cfg)?;
     let (mut hx, mut owner) = (Vec::new(), Vec::new());
     for (j, l) in lobes.iter().enumerate() {
         let a = super::stage2::unit_f32(l.axis);
         let idx: Vec<usize> = (0..c.len()).filter(|&i| c.n[i][0] * a[0] + c.n[i][1] * a[1] + c.n[i][2] * a[2] > 0.0).collect();
         let rays = Rays { origins: idx.iter().map(|&i| c.x[i]).collect(), dirs: vec![a; idx.len()] };
-        let f = |p: &[f32]| sdf.sdf(backend, p);
-        let (hit, t, _) = trace_secondary(&f, &rays, cfg.secondary_offset, cfg.secondary_steps, cfg.secondary_threshold, 1.0)?;
-        for (q, &i) in idx.iter().enumerate() {
-            if hit[q] {
-                hx.push(rays.at(q, t[q]));
-                owner.push((i, j));
-            }
+        for (q, x) in super::stage2::secondary_hits(backend, sdf, cfg, grid.as_ref().map(|g| g.0.as_ref()), &rays)?.hits {
+            hx.push(x);
+            owner.push((idx[q], j));
         }
     }
     let hn = super::stage2::normals_at(backend, sdf, &hx, super::stage2::normal_step(sdf, cfg))?;

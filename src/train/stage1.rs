@@ -39,6 +39,7 @@ use crate::nn::encoding::{encoding_forward_cpu, EncodingConfig};
 use crate::nn::field::{Encoder, FieldEncoding, FieldOutputGrads, FieldOutputs, PositionEncoder, SdfField, SdfFieldConfig};
 use crate::nn::mlp::{Activation, Init, Mlp, MlpConfig};
 use crate::nn::params::ParamStore;
+use crate::render::grid::SdfGrid;
 use crate::render::{min_sdf_along, sphere_interval, trace, Rays, TraceConfig, TraceMode};
 use crate::scene::{Camera, View};
 use crate::util::DataError;
@@ -608,6 +609,8 @@ pub struct Model {
     pub sdf_params: Vec<f32>,
     /// `[appearance grid, radiance MLP]`.
     pub radiance_params: Vec<f32>,
+    /// The SDF last sampled on a grid ([`Model::sdf_grid`]) and the parameters it was sampled at.
+    grid_memo: std::sync::Mutex<Option<(Vec<f32>, std::sync::Arc<SdfGrid>)>>,
 }
 
 impl Model {
@@ -618,7 +621,24 @@ impl Model {
         let appearance = cfg.appearance_encoder();
         let mut radiance_params = appearance.as_ref().map(|e| e.init(cfg.seed.wrapping_add(29))).unwrap_or_default();
         radiance_params.extend(radiance.init(Init::Default, cfg.seed.wrapping_add(17)));
-        Ok(Self { field, radiance, view_encoding: EncodingConfig::frequency(cfg.view_freqs), appearance, sdf_params, radiance_params })
+        Ok(Self { field, radiance, view_encoding: EncodingConfig::frequency(cfg.view_freqs), appearance, sdf_params, radiance_params, grid_memo: Default::default() })
+    }
+
+    /// The SDF sampled at `nodes³` nodes over the bounding cube `[-1, 1]³` (stage 2's secondary
+    /// rays march on it), and the seconds sampling took (0 when the grid was sampled before at the
+    /// same parameters, bit for bit, and is reused: the stage-2 cache and every render of a run
+    /// share one).
+    pub fn sdf_grid(&self, backend: &Backend, nodes: usize) -> Result<(std::sync::Arc<SdfGrid>, f64), BackendError> {
+        let mut memo = self.grid_memo.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some((p, g)) = memo.as_ref() {
+            if g.nodes() == nodes && crate::util::same_bits(p, &self.sdf_params) {
+                return Ok((g.clone(), 0.0));
+            }
+        }
+        let t0 = std::time::Instant::now();
+        let g = std::sync::Arc::new(SdfGrid::sample(&|p: &[f32]| self.sdf(backend, p), 1.0, nodes)?);
+        *memo = Some((self.sdf_params.clone(), g.clone()));
+        Ok((g, t0.elapsed().as_secs_f64()))
     }
 
     /// `(features the radiance net reads, appearance-grid parameters)`.

@@ -1505,10 +1505,69 @@ pub struct SurfaceCache {
     pub secondary_evaluations: usize,
     /// Lobes re-traced since the cache was built.
     pub retraced: usize,
-    /// The frozen SDF sampled for the secondary rays (`Stage2Config::secondary_grid_nodes`), made
-    /// by the first lobe traced, and the seconds its sampling took.
+    /// The frozen SDF sampled for the secondary rays (`Stage2Config::secondary_grid_nodes`,
+    /// [`Stage1Model::sdf_grid`]: sampled once per SDF and shared), and the seconds this cache
+    /// spent sampling it.
     pub grid: Option<std::sync::Arc<SdfGrid>>,
     pub grid_seconds: f64,
+}
+
+/// The grid stage 2's secondary rays march on ([`Stage2Config::secondary_grid_nodes`]; None with
+/// `--refine-geometry`, whose SDF moves, or when the config asks for the network): the SDF's
+/// shared sample ([`Stage1Model::sdf_grid`]) and the seconds sampling it took now (0 if reused).
+pub fn secondary_grid(backend: &Backend, sdf: &Stage1Model, cfg: &Stage2Config) -> Result<Option<(std::sync::Arc<SdfGrid>, f64)>, BackendError> {
+    if cfg.secondary_grid_nodes < 2 || cfg.refine_geometry {
+        return Ok(None);
+    }
+    sdf.sdf_grid(backend, cfg.secondary_grid_nodes).map(Some)
+}
+
+/// What [`secondary_hits`] found.
+pub struct SecondaryHits {
+    /// `(ray, hit point)` for every blocked ray.
+    pub hits: Vec<(usize, [f32; 3])>,
+    /// Steps marched (grid lookups or field evaluations) and field evaluations spent.
+    pub steps: usize,
+    pub evaluations: usize,
+}
+
+/// Secondary rays from their origins (cached surface points) along their directions: which the
+/// surface blocks and where ([`trace_secondary`] with the config's offset, steps and threshold).
+/// With `grid` they march on it, and each hit goes onto the network's own surface (the grid's
+/// trilinear surface is off by ~h²κ/8): a sphere-tracing step of the network, then a secant step
+/// through the two values (whatever the field's slope along the ray).
+pub fn secondary_hits(backend: &Backend, sdf: &Stage1Model, cfg: &Stage2Config, grid: Option<&SdfGrid>, rays: &Rays) -> Result<SecondaryHits, BackendError> {
+    let f = |p: &[f32]| sdf.sdf(backend, p);
+    let march: &dyn crate::render::SdfBatch = match grid {
+        Some(g) => g,
+        None => &f,
+    };
+    let (hit, mut t, steps) = trace_secondary(march, rays, cfg.secondary_offset, cfg.secondary_steps, cfg.secondary_threshold, 1.0)?;
+    let hit_rays: Vec<usize> = (0..rays.len()).filter(|&j| hit[j]).collect();
+    let mut evaluations = if grid.is_none() { steps } else { 0 };
+    if grid.is_some() && !hit_rays.is_empty() {
+        let net = |t: &[f32]| -> Result<Vec<f32>, BackendError> {
+            let pts: Vec<[f32; 3]> = hit_rays.iter().map(|&j| rays.at(j, t[j])).collect();
+            sdf.sdf(backend, bytemuck::cast_slice(&pts))
+        };
+        let f0 = net(&t)?;
+        let t0 = t.clone();
+        for (&j, &v) in hit_rays.iter().zip(&f0) {
+            if v.is_finite() {
+                t[j] += v;
+            }
+        }
+        let f1 = net(&t)?;
+        evaluations += 2 * hit_rays.len();
+        for ((&j, &a), &c) in hit_rays.iter().zip(&f0).zip(&f1) {
+            if a.is_finite() && c.is_finite() && (c - a).abs() > 1e-9 {
+                let ts = t[j] - c * (t[j] - t0[j]) / (c - a);
+                t[j] = ts.clamp(t0[j] - 2.0 * a.abs(), t0[j] + 2.0 * a.abs());
+            }
+        }
+    }
+    let hits = hit_rays.into_iter().map(|j| (j, rays.at(j, t[j]))).collect();
+    Ok(SecondaryHits { hits, steps, evaluations })
 }
 
 /// Unit normals at points: central differences of the stage-1 field with step `step` (the
@@ -1590,61 +1649,26 @@ impl SurfaceCache {
         let ax = f64x3(axis);
         let idx: Vec<usize> = (0..self.len()).filter(|&i| dot3(f64x3(self.n[i]), ax) > 0.0).collect();
         let rays = Rays { origins: idx.iter().map(|&i| self.x[i]).collect(), dirs: vec![axis; idx.len()] };
-        let f = |p: &[f32]| sdf.sdf(backend, p);
-        let grid = match (&self.grid, cfg.secondary_grid_nodes >= 2 && !cfg.refine_geometry) {
-            (Some(g), true) => Some(g.clone()),
-            (None, true) => {
-                let t0 = std::time::Instant::now();
-                let g = std::sync::Arc::new(SdfGrid::sample(&f, 1.0, cfg.secondary_grid_nodes)?);
+        let grid = secondary_grid(backend, sdf, cfg)?;
+        if let Some((g, seconds)) = &grid {
+            if *seconds > 0.0 {
                 self.evaluations += g.evaluations();
-                self.grid_seconds = t0.elapsed().as_secs_f64();
-                self.grid = Some(g.clone());
-                Some(g)
+                self.grid_seconds += seconds;
             }
-            (_, false) => None,
-        };
+            self.grid = Some(g.clone());
+        }
         let mut hits = Vec::new();
         let mut hit_pts = Vec::new();
         for start in (0..rays.len()).step_by(1 << 15) {
             let end = (start + (1 << 15)).min(rays.len());
             let r = Rays { origins: rays.origins[start..end].to_vec(), dirs: rays.dirs[start..end].to_vec() };
-            let march: &dyn crate::render::SdfBatch = match &grid {
-                Some(g) => g.as_ref(),
-                None => &f,
-            };
-            let (hit, mut t, evals) = trace_secondary(march, &r, cfg.secondary_offset, cfg.secondary_steps, cfg.secondary_threshold, 1.0)?;
+            let sh = secondary_hits(backend, sdf, cfg, grid.as_ref().map(|g| g.0.as_ref()), &r)?;
             self.secondary_rays += r.len();
-            self.secondary_evaluations += evals;
-            let hit_rays: Vec<usize> = (0..r.len()).filter(|&j| hit[j]).collect();
-            if grid.is_none() {
-                self.evaluations += evals;
-            } else if !hit_rays.is_empty() {
-                // Hits found on the grid go onto the network's own surface (the grid's trilinear
-                // surface is off by ~h²κ/8): a sphere-tracing step of the network, then a secant
-                // step through the two values (whatever the field's slope along the ray).
-                let net = |t: &[f32]| -> Result<Vec<f32>, BackendError> {
-                    let pts: Vec<[f32; 3]> = hit_rays.iter().map(|&j| r.at(j, t[j])).collect();
-                    sdf.sdf(backend, bytemuck::cast_slice(&pts))
-                };
-                let f0 = net(&t)?;
-                let t0 = t.clone();
-                for (&j, &v) in hit_rays.iter().zip(&f0) {
-                    if v.is_finite() {
-                        t[j] += v;
-                    }
-                }
-                let f1 = net(&t)?;
-                self.evaluations += 2 * hit_rays.len();
-                for ((&j, &a), &c) in hit_rays.iter().zip(&f0).zip(&f1) {
-                    if a.is_finite() && c.is_finite() && (c - a).abs() > 1e-9 {
-                        let ts = t[j] - c * (t[j] - t0[j]) / (c - a);
-                        t[j] = ts.clamp(t0[j] - 2.0 * a.abs(), t0[j] + 2.0 * a.abs());
-                    }
-                }
-            }
-            for j in hit_rays {
+            self.secondary_evaluations += sh.steps;
+            self.evaluations += sh.evaluations;
+            for (j, x) in sh.hits {
                 hits.push(idx[start + j]);
-                hit_pts.push(r.at(j, t[j]));
+                hit_pts.push(x);
             }
         }
         let hn = normals_at(backend, sdf, &hit_pts, normal_step(sdf, cfg))?;
