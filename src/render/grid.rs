@@ -7,20 +7,21 @@ use rayon::prelude::*;
 
 use super::SdfBatch;
 use crate::backend::BackendError;
+use crate::mesh::field::Aabb;
+use crate::mesh::grid::GridSpec;
 
-/// SDF values at `nodes³` nodes spanning `[-bound, bound]³`, node `(x, y, z)` at
-/// `-bound + spacing·(x, y, z)`.
+/// SDF values at `nodes³` nodes spanning `[-bound, bound]³` (the mesher's [`GridSpec`] layout,
+/// x fastest).
 #[derive(Clone)]
 pub struct SdfGrid {
     bound: f32,
-    nodes: usize,
-    spacing: f32,
+    spec: GridSpec,
     values: Vec<f32>,
 }
 
 impl std::fmt::Debug for SdfGrid {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "SdfGrid {{ nodes: {}³, bound: {} }}", self.nodes, self.bound)
+        write!(f, "SdfGrid {{ nodes: {}³, bound: {} }}", self.nodes(), self.bound)
     }
 }
 
@@ -31,30 +32,27 @@ impl SdfGrid {
             return Err(BackendError::Config(format!("an SDF grid needs a positive bound and at least 2 nodes per axis (got {bound}, {nodes})")));
         }
         let n = nodes;
-        let spacing = 2.0 * bound / (n - 1) as f32;
-        let coord = |i: usize| -bound + spacing * i as f32;
+        let spec = GridSpec::over(&Aabb { min: [-bound; 3], max: [bound; 3] }, n);
         let slabs = ((1usize << 16) / (n * n)).max(1);
-        let mut values = Vec::with_capacity(n * n * n);
+        let mut values = Vec::with_capacity(spec.len());
         for z0 in (0..n).step_by(slabs) {
-            let pts: Vec<f32> = (z0..(z0 + slabs).min(n))
-                .flat_map(|z| (0..n).flat_map(move |y| (0..n).flat_map(move |x| [coord(x), coord(y), coord(z)])))
-                .collect();
+            let pts: Vec<f32> = (z0..(z0 + slabs).min(n)).flat_map(|z| (0..n).flat_map(move |y| (0..n).flat_map(move |x| spec.node(x, y, z)))).collect();
             let v = f.sdf(&pts)?;
             if v.len() != pts.len() / 3 {
                 return Err(BackendError::Shape(format!("sdf batch returned {} values for {} points", v.len(), pts.len() / 3)));
             }
             values.extend(v);
         }
-        Ok(Self { bound, nodes: n, spacing, values })
+        Ok(Self { bound, spec, values })
     }
 
     pub fn nodes(&self) -> usize {
-        self.nodes
+        self.spec.dims[0]
     }
 
     /// Node spacing (normalised units).
     pub fn spacing(&self) -> f32 {
-        self.spacing
+        self.spec.spacing
     }
 
     /// Field evaluations its sampling took.
@@ -64,16 +62,16 @@ impl SdfGrid {
 
     /// Trilinear interpolation at `p` (clamped into the cube).
     pub fn at(&self, p: [f32; 3]) -> f32 {
-        let n = self.nodes;
+        let n = self.nodes();
         let mut i = [0usize; 3];
         let mut w = [0.0f32; 3];
         for a in 0..3 {
-            let u = ((p[a] + self.bound) / self.spacing).clamp(0.0, (n - 1) as f32);
+            let u = ((p[a] + self.bound) / self.spec.spacing).clamp(0.0, (n - 1) as f32);
             let i0 = (u as usize).min(n - 2);
             i[a] = i0;
             w[a] = u - i0 as f32;
         }
-        let idx = |x: usize, y: usize, z: usize| (z * n + y) * n + x;
+        let idx = |x: usize, y: usize, z: usize| self.spec.index(x, y, z);
         let v = &self.values;
         let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
         let (x, y, z) = (i[0], i[1], i[2]);
