@@ -417,39 +417,72 @@ pub fn vertex_index(lvl: &GridLevel, v: [u32; 3], table_mask: u32) -> u32 {
     }
 }
 
-/// The 8 corners of a cell: (entry index in the flat table, trilinear weight, d weight / d frac).
-#[inline(always)]
-fn corners<T: Real>(lvl: &GridLevel, cell: &Cell<T>, table_mask: u32) -> [(usize, T, [T; 3]); 8] {
-    let one = T::from_f64(1.0);
-    let mut out = [(0usize, T::default(), [T::default(); 3]); 8];
-    for (c, slot) in out.iter_mut().enumerate() {
-        let bit = [c & 1, (c >> 1) & 1, (c >> 2) & 1];
-        let mut w1 = [T::default(); 3];
-        let mut sign = [T::default(); 3];
-        let mut v = [0u32; 3];
-        for d in 0..3 {
-            v[d] = cell.base[d] + bit[d] as u32;
-            if bit[d] == 1 {
-                w1[d] = cell.frac[d];
-                sign[d] = one;
-            } else {
-                w1[d] = one - cell.frac[d];
-                sign[d] = -one;
+/// The 8 corners of the cell that holds a point in one level. Corner `c` has the offsets
+/// `(c & 1, (c >> 1) & 1, c >> 2)`; its trilinear weight is `(a[0]·a[1])·a[2]` with `a[d]` the
+/// axis factor `1 − frac` or `frac`, the order the WGSL kernel multiplies in.
+struct Corners<T> {
+    /// Entry index in the flat table (the level's offset included).
+    idx: [usize; 8],
+    w: [T; 8],
+    /// Axis factors `[1 − frac, frac]` per coordinate.
+    axis: [[T; 2]; 3],
+    /// Whether each coordinate is inside the cube (clamped coordinates get no gradient).
+    inside: [bool; 3],
+}
+
+impl<T: Real> Corners<T> {
+    /// The point's cell in `lvl`. The table index terms are formed once per axis (two per axis,
+    /// not eight per corner) and combined as [`vertex_index`] does: the same integers.
+    #[inline(always)]
+    fn of(lvl: &GridLevel, p: [T; 3], bound: T, inv_2b: T, table_mask: u32) -> Self {
+        let cell = locate(p, bound, inv_2b, lvl.resolution);
+        let one = T::from_f64(1.0);
+        let axis = cell.frac.map(|f| [one - f, f]);
+        let [bx, by, bz] = cell.base;
+        let terms = |scale: [u32; 3]| {
+            [
+                [bx.wrapping_mul(scale[0]), (bx + 1).wrapping_mul(scale[0])],
+                [by.wrapping_mul(scale[1]), (by + 1).wrapping_mul(scale[1])],
+                [bz.wrapping_mul(scale[2]), (bz + 1).wrapping_mul(scale[2])],
+            ]
+        };
+        let mut idx = [0usize; 8];
+        if lvl.dense {
+            let s = lvl.resolution + 1;
+            let [tx, ty, tz] = terms([1, s, s * s]);
+            for (c, i) in idx.iter_mut().enumerate() {
+                *i = (lvl.offset + tx[c & 1] + ty[(c >> 1) & 1] + tz[c >> 2]) as usize;
+            }
+        } else {
+            let [tx, ty, tz] = terms(HASH_PRIMES);
+            for (c, i) in idx.iter_mut().enumerate() {
+                *i = (lvl.offset + ((tx[c & 1] ^ ty[(c >> 1) & 1] ^ tz[c >> 2]) & table_mask)) as usize;
             }
         }
-        let w = w1[0] * w1[1] * w1[2];
-        let dw = [
-            sign[0] * w1[1] * w1[2],
-            w1[0] * sign[1] * w1[2],
-            w1[0] * w1[1] * sign[2],
+        let xy = [
+            axis[0][0] * axis[1][0],
+            axis[0][1] * axis[1][0],
+            axis[0][0] * axis[1][1],
+            axis[0][1] * axis[1][1],
         ];
-        *slot = (
-            (lvl.offset + vertex_index(lvl, v, table_mask)) as usize,
-            w,
-            dw,
-        );
+        let w = std::array::from_fn(|c| xy[c & 3] * axis[2][c >> 2]);
+        Corners { idx, w, axis, inside: cell.inside }
     }
-    out
+
+    /// d weight / d frac of each corner: the weight with the axis factor of `d` replaced by ±1.
+    #[inline(always)]
+    fn dw(&self) -> [[T; 3]; 8] {
+        let a = &self.axis;
+        let signed = |v: T, bit: usize| if bit == 1 { v } else { -v };
+        std::array::from_fn(|c| {
+            let (i, j, k) = (c & 1, (c >> 1) & 1, c >> 2);
+            [
+                signed(a[1][j] * a[2][k], i),
+                signed(a[0][i] * a[2][k], j),
+                signed(a[0][i] * a[1][j], k),
+            ]
+        })
+    }
 }
 
 /// Geometry of the grid the cpu twins and the WGSL launcher share.
@@ -505,9 +538,20 @@ pub fn hash_grid_forward_cpu<T: Real>(cfg: &EncodingConfig, params: &[T], x: &[T
         .for_each(|(o, xs)| {
             for (l, lvl) in g.levels.iter().enumerate() {
                 for (orow, xrow) in o.chunks_exact_mut(od).zip(xs.chunks_exact(3)) {
-                    let cell = locate(point(xrow), bound, inv_2b, lvl.resolution);
+                    let k = Corners::of(lvl, point(xrow), bound, inv_2b, g.table_mask);
                     let acc = &mut orow[l * g.f..(l + 1) * g.f];
-                    for (idx, w, _) in corners(lvl, &cell, g.table_mask) {
+                    if let [a0, a1] = acc {
+                        // Two features per level (every preset): accumulate in registers.
+                        let (mut s0, mut s1) = (*a0, *a1);
+                        for (&idx, &w) in k.idx.iter().zip(&k.w) {
+                            let e = &params[idx * 2..idx * 2 + 2];
+                            s0 += w * e[0];
+                            s1 += w * e[1];
+                        }
+                        (*a0, *a1) = (s0, s1);
+                        continue;
+                    }
+                    for (&idx, &w) in k.idx.iter().zip(&k.w) {
                         for (f, a) in acc.iter_mut().enumerate() {
                             *a += w * params[idx * g.f + f];
                         }
@@ -542,9 +586,9 @@ pub fn hash_grid_backward_params_cpu<T: Real>(
         let lvl = &g.levels[l];
         let base = lvl.offset as usize * g.f;
         for (xrow, dorow) in x.chunks_exact(3).zip(d_out.chunks_exact(od)) {
-            let cell = locate(point(xrow), bound, inv_2b, lvl.resolution);
+            let k = Corners::of(lvl, point(xrow), bound, inv_2b, g.table_mask);
             let dol = &dorow[l * g.f..(l + 1) * g.f];
-            for (idx, w, _) in corners(lvl, &cell, g.table_mask) {
+            for (&idx, &w) in k.idx.iter().zip(&k.w) {
                 let e = idx * g.f - base;
                 for f in 0..g.f {
                     dp[e + f] += w * dol[f];
@@ -580,16 +624,16 @@ pub fn hash_grid_backward_x_cpu<T: Real>(
                     .zip(xs.chunks_exact(3))
                     .zip(dos.chunks_exact(od))
                 {
-                    let cell = locate(point(xrow), bound, inv_2b, lvl.resolution);
+                    let k = Corners::of(lvl, point(xrow), bound, inv_2b, g.table_mask);
                     let dpos = T::from_f64(lvl.resolution as f64) * inv_2b;
                     let dol = &dorow[l * g.f..(l + 1) * g.f];
-                    for (idx, _, dw) in corners(lvl, &cell, g.table_mask) {
+                    for (&idx, dw) in k.idx.iter().zip(k.dw()) {
                         let mut s = T::default();
                         for f in 0..g.f {
                             s += dol[f] * params[idx * g.f + f];
                         }
                         for d in 0..3 {
-                            if cell.inside[d] {
+                            if k.inside[d] {
                                 dxrow[d] += s * dw[d] * dpos;
                             }
                         }
