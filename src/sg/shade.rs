@@ -232,12 +232,18 @@ pub fn sg_eval<S: Scalar>(g: &Sg<S>, w: V3<S>) -> V3<S> {
 /// The product of two SGs is an SG. The exponent `λ' − λ1 − λ2` is evaluated without
 /// cancellation as `2λ1λ2(ξ1·ξ2 − 1)/(λ' + λ1 + λ2)`.
 pub fn sg_product<S: Scalar>(a: &Sg<S>, b: &Sg<S>) -> Sg<S> {
-    let u = add(scale(a.axis, a.lambda), scale(b.axis, b.lambda));
+    let (axis, lambda, e) = sg_product_shape(a.axis, a.lambda, b.axis, b.lambda);
+    Sg { axis, lambda, mu: [a.mu[0] * b.mu[0] * e, a.mu[1] * b.mu[1] * e, a.mu[2] * b.mu[2] * e] }
+}
+
+/// [`sg_product`] without amplitudes: the product's axis and sharpness, and the factor `e` its
+/// amplitude carries (`μ' = μ1·μ2·e`).
+fn sg_product_shape<S: Scalar>(a_axis: V3<S>, a_lambda: S, b_axis: V3<S>, b_lambda: S) -> (V3<S>, S, S) {
+    let u = add(scale(a_axis, a_lambda), scale(b_axis, b_lambda));
     let lam = dot(u, u).sqrt().max_c(1e-12);
     let axis = scale(u, S::c(1.0) / lam);
-    let expo = S::c(2.0) * a.lambda * b.lambda * (dot(a.axis, b.axis) - S::c(1.0)) / (lam + a.lambda + b.lambda);
-    let e = expo.exp();
-    Sg { axis, lambda: lam, mu: [a.mu[0] * b.mu[0] * e, a.mu[1] * b.mu[1] * e, a.mu[2] * b.mu[2] * e] }
+    let expo = S::c(2.0) * a_lambda * b_lambda * (dot(a_axis, b_axis) - S::c(1.0)) / (lam + a_lambda + b_lambda);
+    (axis, lam, expo.exp())
 }
 
 /// `1 − e^{−x}` for x ≥ 0, accurate for small x.
@@ -283,13 +289,13 @@ pub fn hemisphere_int<S: Scalar>(lambda: S, cos_beta: S) -> S {
     a_b * (S::c(1.0) - s) + a_u * s
 }
 
-/// `∫_{H(n)} G(ω)·cos⁺ dω` with the cosine as SG minus constant (per channel); `n` unit.
-fn cosine_hemisphere<S: Scalar>(g: &Sg<S>, n: V3<S>) -> V3<S> {
-    let cos_sg = Sg { axis: n, lambda: S::c(COS_LAMBDA), mu: [S::c(COS_MU); 3] };
-    let p = sg_product(&cos_sg, g);
-    let h1 = hemisphere_int(p.lambda, dot(p.axis, n));
-    let h2 = hemisphere_int(g.lambda, dot(g.axis, n));
-    [0, 1, 2].map(|c| p.mu[c] * h1 - g.mu[c] * S::c(COS_ALPHA) * h2)
+/// `∫_{H(n)} G(ω; ξ, λ, 1)·cos⁺ dω` with the cosine as SG minus constant; `n` unit. An SG's
+/// integral is its amplitude times this.
+fn cosine_hemisphere_unit<S: Scalar>(axis: V3<S>, lambda: S, n: V3<S>) -> S {
+    let (p_axis, p_lambda, e) = sg_product_shape(n, S::c(COS_LAMBDA), axis, lambda);
+    let h1 = hemisphere_int(p_lambda, dot(p_axis, n));
+    let h2 = hemisphere_int(lambda, dot(axis, n));
+    S::c(COS_MU) * e * h1 - S::c(COS_ALPHA) * h2
 }
 
 /// Per-point shading inputs.
@@ -302,12 +308,24 @@ pub struct Surface<S> {
     pub view: V3<S>,
 }
 
-/// One lobe's (specular, diffuse) contribution before the final clamps.
+/// One lobe's (specular, diffuse) contribution before the final clamps: per channel
+/// `spec_c = μ_c·F_s` and `diff_c = μ_c·(a_c/π)·F_d`, with the factors of [`lobe_factors`].
 pub fn lobe_contribution<S: Scalar>(s: &Surface<S>, light: &Sg<S>) -> (V3<S>, V3<S>) {
-    let n = normalize(s.normal);
-    let v = normalize(s.view);
-    let light = Sg { axis: normalize(light.axis), lambda: light.lambda.max_c(LAMBDA_MIN), mu: light.mu };
-    let r = s.roughness.max_c(R_MIN).min_c(1.0);
+    let (fs, fd) = lobe_factors(s.normal, s.view, s.roughness, light.axis, light.lambda);
+    let spec = [0, 1, 2].map(|c| light.mu[c] * fs);
+    let diff = [0, 1, 2].map(|c| light.mu[c] * (s.albedo[c] * S::c(1.0 / PI)) * fd);
+    (spec, diff)
+}
+
+/// The two channel-free factors of a lobe's contribution (see [`lobe_contribution`]): the
+/// specular `F_s` and the diffuse `F_d` of a unit-amplitude lobe on a unit albedo. Amplitude and
+/// albedo enter linearly, so a gradient needs duals only in what these take.
+pub fn lobe_factors<S: Scalar>(normal: V3<S>, view: V3<S>, roughness: S, axis: V3<S>, lambda: S) -> (S, S) {
+    let n = normalize(normal);
+    let v = normalize(view);
+    let axis = normalize(axis);
+    let lambda = lambda.max_c(LAMBDA_MIN);
+    let r = roughness.max_c(R_MIN).min_c(1.0);
     let r2 = r * r;
     let inv_r4 = S::c(1.0) / (r2 * r2);
 
@@ -326,13 +344,12 @@ pub fn lobe_contribution<S: Scalar>(s: &Surface<S>, light: &Sg<S>) -> (V3<S>, V3
     let g1 = d1 / (d1 * (S::c(1.0) - k) + k + S::c(TINY));
     let g2 = d2 / (d2 * (S::c(1.0) - k) + k + S::c(TINY));
     let moi = fresnel * g1 * g2 / (S::c(4.0) * d1 * d2 + S::c(TINY));
-    let brdf = Sg { axis: w, lambda: lam_w, mu: [mu_d * moi; 3] };
-    let spec = cosine_hemisphere(&sg_product(&light, &brdf), n);
+    // The light times the BRDF's SG (amplitude mu_d·moi), cosine-weighted over the hemisphere.
+    let (p_axis, p_lambda, e) = sg_product_shape(axis, lambda, w, lam_w);
+    let spec = mu_d * moi * e * cosine_hemisphere_unit(p_axis, p_lambda, n);
 
-    // Diffuse: albedo/π times the light, cosine-weighted over the hemisphere.
-    let kd = scale(s.albedo, S::c(1.0 / PI));
-    let lit = Sg { axis: light.axis, lambda: light.lambda, mu: [light.mu[0] * kd[0], light.mu[1] * kd[1], light.mu[2] * kd[2]] };
-    let diff = cosine_hemisphere(&lit, n);
+    // Diffuse: the light cosine-weighted over the hemisphere (times a/π in the caller).
+    let diff = cosine_hemisphere_unit(axis, lambda, n);
     (spec, diff)
 }
 

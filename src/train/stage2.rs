@@ -37,6 +37,7 @@
 //! lobe through the shading, reverse through the mixture, the weight normalisation and the MLPs
 //! (`Backend::mlp_backward`). It is checked against central differences in the tests.
 
+use std::f64::consts::PI;
 use std::path::Path;
 
 use rand::Rng;
@@ -53,7 +54,7 @@ use crate::nn::params::ParamStore;
 use crate::render::grid::SdfGrid;
 use crate::render::{trace, trace_secondary, Rays, TraceConfig};
 use crate::sg::env::{EnvSgs, SgLobe};
-use crate::sg::shade::{lobe_contribution, normalize, sg_eval, Dual, Sg, Surface, LAMBDA_MIN, R_MIN};
+use crate::sg::shade::{lobe_contribution, lobe_factors, normalize, sg_eval, Dual, Sg, Surface, LAMBDA_MIN, R_MIN};
 use crate::util::DataError;
 
 /// How light blocked by the object itself is modelled.
@@ -951,46 +952,63 @@ pub fn shade_f64(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3], lobes: 
     (spec, diff)
 }
 
-/// Gradient of `Σ_c d_out_c · L_c` for one point: `(d albedo, d roughness, per lobe [d axis (3),
-/// d λ, d μ (3)])`, given the forward's clamp masks (`spec`/`diff` sums from [`shade_f64`]).
-pub fn shade_grad(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>], spec: [f64; 3], diff: [f64; 3], d_out: [f64; 3]) -> ([f64; 3], f64, Vec<[f64; 7]>) {
-    let ws = [0, 1, 2].map(|c| if spec[c] > 0.0 { d_out[c] } else { 0.0 });
-    let wd = [0, 1, 2].map(|c| if diff[c] > 0.0 { d_out[c] } else { 0.0 });
-    let mut da = [0.0; 3];
-    let mut dr = 0.0;
-    let mut dl = Vec::with_capacity(lobes.len());
-    type D = Dual<11>;
-    let cst = |x: f64| D { v: x, d: [0.0; 11] };
-    let s = Surface {
-        albedo: [D::var(albedo[0], 0), D::var(albedo[1], 1), D::var(albedo[2], 2)],
-        roughness: D::var(rough, 3),
-        normal: n.map(cst),
-        view: v.map(cst),
-    };
-    for l in lobes {
-        let g = Sg {
-            axis: [D::var(l.axis[0], 4), D::var(l.axis[1], 5), D::var(l.axis[2], 6)],
-            lambda: D::var(l.lambda, 7),
-            mu: [D::var(l.mu[0], 8), D::var(l.mu[1], 9), D::var(l.mu[2], 10)],
-        };
-        let (sp, df) = lobe_contribution(&s, &g);
-        let mut d = [0.0f64; 11];
-        for c in 0..3 {
-            for (i, di) in d.iter_mut().enumerate() {
-                *di += ws[c] * sp[c].d[i] + wd[c] * df[c].d[i];
+/// One point's shading under its lobes, kept for its gradient: per lobe the factors of
+/// [`lobe_factors`] as duals in (R, ξ (3), λ). Amplitude and albedo enter linearly, so five
+/// tangents give the whole gradient (not eleven through every channel). `spec`/`diff` are
+/// [`shade_f64`]'s sums, computed the same way.
+pub struct PointShading {
+    pub spec: [f64; 3],
+    pub diff: [f64; 3],
+    factors: Vec<(Dual<5>, Dual<5>)>,
+}
+
+impl PointShading {
+    pub fn new(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>]) -> Self {
+        type D = Dual<5>;
+        let cst = |x: f64| D { v: x, d: [0.0; 5] };
+        let (nd, vd, rd) = (n.map(cst), v.map(cst), D::var(rough, 0));
+        let mut out = Self { spec: [0.0; 3], diff: [0.0; 3], factors: Vec::with_capacity(lobes.len()) };
+        for l in lobes {
+            let axis = [D::var(l.axis[0], 1), D::var(l.axis[1], 2), D::var(l.axis[2], 3)];
+            let (fs, fd) = lobe_factors(nd, vd, rd, axis, D::var(l.lambda, 4));
+            for c in 0..3 {
+                out.spec[c] += l.mu[c] * fs.v;
+                out.diff[c] += l.mu[c] * (albedo[c] * (1.0 / PI)) * fd.v;
             }
+            out.factors.push((fs, fd));
         }
-        for c in 0..3 {
-            da[c] += d[c];
-        }
-        dr += d[3];
-        dl.push([d[4], d[5], d[6], d[7], d[8], d[9], d[10]]);
+        out
     }
-    (da, dr, dl)
+
+    /// Gradient of `Σ_c d_out_c · L_c`: `(d albedo, d roughness, per lobe [d axis (3), d λ, d μ (3)])`.
+    /// A channel whose specular or diffuse sum is clamped passes no gradient through it.
+    pub fn grad(&self, albedo: [f64; 3], lobes: &[Sg<f64>], d_out: [f64; 3]) -> ([f64; 3], f64, Vec<[f64; 7]>) {
+        let ws = [0, 1, 2].map(|c| if self.spec[c] > 0.0 { d_out[c] } else { 0.0 });
+        let wd = [0, 1, 2].map(|c| if self.diff[c] > 0.0 { d_out[c] } else { 0.0 });
+        let kd = albedo.map(|a| a * (1.0 / PI));
+        let mut da = [0.0; 3];
+        let mut dr = 0.0;
+        let mut dl = Vec::with_capacity(lobes.len());
+        for (l, (fs, fd)) in lobes.iter().zip(&self.factors) {
+            let (mut cs, mut cd) = (0.0, 0.0);
+            let mut g = [0.0f64; 7];
+            for c in 0..3 {
+                cs += ws[c] * l.mu[c];
+                cd += wd[c] * l.mu[c] * kd[c];
+                g[4 + c] = ws[c] * fs.v + wd[c] * kd[c] * fd.v;
+                da[c] += wd[c] * l.mu[c] * (1.0 / PI) * fd.v;
+            }
+            let d: [f64; 5] = std::array::from_fn(|i| cs * fs.d[i] + cd * fd.d[i]);
+            dr += d[0];
+            g[..4].copy_from_slice(&d[1..]);
+            dl.push(g);
+        }
+        (da, dr, dl)
+    }
 }
 
 /// Gradient of `Σ_c d_out_c · L_c` for one point with respect to the shading normal (the
-/// geometry refinement's path; masks as [`shade_grad`]).
+/// geometry refinement's path; masks as [`PointShading::grad`]).
 pub fn shade_normal_grad(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>], spec: [f64; 3], diff: [f64; 3], d_out: [f64; 3]) -> [f64; 3] {
     let ws = [0, 1, 2].map(|c| if spec[c] > 0.0 { d_out[c] } else { 0.0 });
     let wd = [0, 1, 2].map(|c| if diff[c] > 0.0 { d_out[c] } else { 0.0 });
@@ -1205,7 +1223,8 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
             let a = [mat[4 * i] as f64, mat[4 * i + 1] as f64, mat[4 * i + 2] as f64];
             let r = mat[4 * i + 3] as f64;
             let (n, v) = (f64x3(batch.n[i]), f64x3(batch.v[i]));
-            let (spec, diff) = shade_f64(a, r, n, v, &li);
+            let shading = PointShading::new(a, r, n, v, &li);
+            let (spec, diff) = (shading.spec, shading.diff);
             let mut rgb = [0.0; 3];
             let mut d_out = [0.0; 3];
             let (mut loss, mut se) = (0.0, 0.0);
@@ -1217,7 +1236,7 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
                 se += e * e;
                 d_out[c] = e.signum() * inv3b * de;
             }
-            let (da, dr, dl) = shade_grad(a, r, n, v, &li, spec, diff, d_out);
+            let (da, dr, dl) = shading.grad(a, &li, d_out);
             let dn = if geometry { shade_normal_grad(a, r, n, v, &li, spec, diff, d_out) } else { [0.0; 3] };
             let (fit, d_fit) = match (mii_fwd.is_some(), batch.mii_targets.get(i)) {
                 (true, Some(t)) => mii_fit(&mii_sgs[i], t, fit_scale),
