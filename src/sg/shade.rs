@@ -321,36 +321,56 @@ pub fn lobe_contribution<S: Scalar>(s: &Surface<S>, light: &Sg<S>) -> (V3<S>, V3
 /// specular `F_s` and the diffuse `F_d` of a unit-amplitude lobe on a unit albedo. Amplitude and
 /// albedo enter linearly, so a gradient needs duals only in what these take.
 pub fn lobe_factors<S: Scalar>(normal: V3<S>, view: V3<S>, roughness: S, axis: V3<S>, lambda: S) -> (S, S) {
-    let n = normalize(normal);
-    let v = normalize(view);
-    let axis = normalize(axis);
-    let lambda = lambda.max_c(LAMBDA_MIN);
-    let r = roughness.max_c(R_MIN).min_c(1.0);
-    let r2 = r * r;
-    let inv_r4 = S::c(1.0) / (r2 * r2);
+    BrdfSg::new(normal, view, roughness).lobe_factors(axis, lambda)
+}
 
-    // Specular: D as an SG around n, warped to the light domain.
-    let vn = dot(v, n).max_c(0.0);
-    let w = add(scale(n, S::c(2.0) * vn), scale(v, S::c(-1.0)));
-    let w = normalize(w);
-    let lam_w = S::c(2.0) * inv_r4 / (S::c(4.0) * vn + S::c(TINY));
-    let mu_d = inv_r4 * S::c(1.0 / PI);
-    let h = normalize(add(w, v));
-    let vh = dot(v, h).max_c(0.0);
-    let fresnel = S::c(F0) + S::c(1.0 - F0) * (-(S::c(5.55473) * vh + S::c(6.8316)) * vh).exp2();
-    let d1 = dot(w, n).max_c(0.0);
-    let d2 = vn;
-    let k = (r + S::c(1.0)) * (r + S::c(1.0)) * S::c(0.125);
-    let g1 = d1 / (d1 * (S::c(1.0) - k) + k + S::c(TINY));
-    let g2 = d2 / (d2 * (S::c(1.0) - k) + k + S::c(TINY));
-    let moi = fresnel * g1 * g2 / (S::c(4.0) * d1 * d2 + S::c(TINY));
-    // The light times the BRDF's SG (amplitude mu_d·moi), cosine-weighted over the hemisphere.
-    let (p_axis, p_lambda, e) = sg_product_shape(axis, lambda, w, lam_w);
-    let spec = mu_d * moi * e * cosine_hemisphere_unit(p_axis, p_lambda, n);
+/// The BRDF side of a point's shading, the same for every lobe: the unit normal and the GGX
+/// lobe as an SG warped to the light domain, its amplitude carrying Fresnel, masking and the
+/// `1/(4(ω·n)(v·n))`.
+#[derive(Clone, Copy, Debug)]
+pub struct BrdfSg<S> {
+    n: V3<S>,
+    axis: V3<S>,
+    lambda: S,
+    amplitude: S,
+}
 
-    // Diffuse: the light cosine-weighted over the hemisphere (times a/π in the caller).
-    let diff = cosine_hemisphere_unit(axis, lambda, n);
-    (spec, diff)
+impl<S: Scalar> BrdfSg<S> {
+    pub fn new(normal: V3<S>, view: V3<S>, roughness: S) -> Self {
+        let n = normalize(normal);
+        let v = normalize(view);
+        let r = roughness.max_c(R_MIN).min_c(1.0);
+        let r2 = r * r;
+        let inv_r4 = S::c(1.0) / (r2 * r2);
+        // D as an SG around n, warped to the light domain.
+        let vn = dot(v, n).max_c(0.0);
+        let w = add(scale(n, S::c(2.0) * vn), scale(v, S::c(-1.0)));
+        let w = normalize(w);
+        let lam_w = S::c(2.0) * inv_r4 / (S::c(4.0) * vn + S::c(TINY));
+        let mu_d = inv_r4 * S::c(1.0 / PI);
+        let h = normalize(add(w, v));
+        let vh = dot(v, h).max_c(0.0);
+        let fresnel = S::c(F0) + S::c(1.0 - F0) * (-(S::c(5.55473) * vh + S::c(6.8316)) * vh).exp2();
+        let d1 = dot(w, n).max_c(0.0);
+        let d2 = vn;
+        let k = (r + S::c(1.0)) * (r + S::c(1.0)) * S::c(0.125);
+        let g1 = d1 / (d1 * (S::c(1.0) - k) + k + S::c(TINY));
+        let g2 = d2 / (d2 * (S::c(1.0) - k) + k + S::c(TINY));
+        let moi = fresnel * g1 * g2 / (S::c(4.0) * d1 * d2 + S::c(TINY));
+        BrdfSg { n, axis: w, lambda: lam_w, amplitude: mu_d * moi }
+    }
+
+    /// [`lobe_factors`] of a light lobe (axis need not be unit; λ floored at [`LAMBDA_MIN`]).
+    pub fn lobe_factors(&self, axis: V3<S>, lambda: S) -> (S, S) {
+        let axis = normalize(axis);
+        let lambda = lambda.max_c(LAMBDA_MIN);
+        // Specular: the light times the BRDF's SG, cosine-weighted over the hemisphere.
+        let (p_axis, p_lambda, e) = sg_product_shape(axis, lambda, self.axis, self.lambda);
+        let spec = self.amplitude * e * cosine_hemisphere_unit(p_axis, p_lambda, self.n);
+        // Diffuse: the light cosine-weighted over the hemisphere (times a/π in the caller).
+        let diff = cosine_hemisphere_unit(axis, lambda, self.n);
+        (spec, diff)
+    }
 }
 
 /// Outgoing radiance at one point under `lobes` (f64 or f32).

@@ -54,7 +54,7 @@ use crate::nn::params::ParamStore;
 use crate::render::grid::SdfGrid;
 use crate::render::{trace, trace_secondary, Rays, TraceConfig};
 use crate::sg::env::{EnvSgs, SgLobe};
-use crate::sg::shade::{lobe_contribution, lobe_factors, normalize, sg_eval, Dual, Sg, Surface, LAMBDA_MIN, R_MIN};
+use crate::sg::shade::{lobe_contribution, normalize, BrdfSg, sg_eval, Dual, Sg, Surface, LAMBDA_MIN, R_MIN};
 use crate::util::DataError;
 
 /// How light blocked by the object itself is modelled.
@@ -953,7 +953,7 @@ pub fn shade_f64(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3], lobes: 
 }
 
 /// One point's shading under its lobes, kept for its gradient: per lobe the factors of
-/// [`lobe_factors`] as duals in (R, ξ (3), λ). Amplitude and albedo enter linearly, so five
+/// [`crate::sg::shade::lobe_factors`] as duals in (R, ξ (3), λ), the BRDF's side formed once. Amplitude and albedo enter linearly, so five
 /// tangents give the whole gradient (not eleven through every channel). `spec`/`diff` are
 /// [`shade_f64`]'s sums, computed the same way.
 pub struct PointShading {
@@ -966,11 +966,11 @@ impl PointShading {
     pub fn new(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>]) -> Self {
         type D = Dual<5>;
         let cst = |x: f64| D { v: x, d: [0.0; 5] };
-        let (nd, vd, rd) = (n.map(cst), v.map(cst), D::var(rough, 0));
+        let brdf = BrdfSg::new(n.map(cst), v.map(cst), D::var(rough, 0));
         let mut out = Self { spec: [0.0; 3], diff: [0.0; 3], factors: Vec::with_capacity(lobes.len()) };
         for l in lobes {
             let axis = [D::var(l.axis[0], 1), D::var(l.axis[1], 2), D::var(l.axis[2], 3)];
-            let (fs, fd) = lobe_factors(nd, vd, rd, axis, D::var(l.lambda, 4));
+            let (fs, fd) = brdf.lobe_factors(axis, D::var(l.lambda, 4));
             for c in 0..3 {
                 out.spec[c] += l.mu[c] * fs.v;
                 out.diff[c] += l.mu[c] * (albedo[c] * (1.0 / PI)) * fd.v;
