@@ -691,3 +691,40 @@ fn wgpu_matches_cpu_on_the_refined_geometry_gradient() {
     let (i, worst) = a.d_sdf.iter().zip(&c.d_sdf).map(|(p, q)| (p - q).abs()).enumerate().fold((0, 0.0f32), |m, (i, d)| if d > m.1 { (i, d) } else { m });
     assert!(worst <= 1e-3 * scale + 1e-6, "d_sdf[{i}]: cpu {} vs wgpu {}, {:.2e} of the largest entry {scale}", a.d_sdf[i], c.d_sdf[i], worst / scale);
 }
+
+#[test]
+fn training_and_rendering_shade_alike_and_match_the_per_lobe_closed_form() {
+    use pii_bake::sg::shade::{lobe_contribution, Surface};
+    use pii_bake::train::stage2::{shade_f64, PointShading};
+    // Lobes above, across and below the horizon, broad to sharp, unnormalised axes.
+    let lobes: Vec<Sg<f64>> = [([0.2, 0.9, 0.1], 0.5), ([1.0, 0.1, 0.0], 8.0), ([0.0, -1.0, 0.3], 30.0), ([0.3, 0.5, 0.8], 200.0), ([-0.4, 0.2, -0.9], 2.0)]
+        .iter()
+        .enumerate()
+        .map(|(k, &(axis, lambda))| Sg { axis, lambda, mu: [0.3 + 0.2 * k as f64, 0.5, 1.1 - 0.15 * k as f64] })
+        .collect();
+    let n = [0.1, 1.0, 0.2];
+    // Roughness below the clamp, mid and rough; a frontal and a grazing view.
+    for (rough, v) in [(0.005, [0.3, 0.8, 0.2]), (0.35, [0.3, 0.8, 0.2]), (1.0, [0.9, 0.05, -0.4]), (0.6, [0.95, 0.02, 0.1])] {
+        let albedo = [0.8, 0.45, 0.1];
+        let ps = PointShading::new(albedo, rough, n, v, &lobes);
+        // The training's sums (duals) against the renderer's (f64) and the per-lobe closed form:
+        // the same formula, so they differ only by f64 rounding (a dual divides by multiplying).
+        let s = Surface { albedo, roughness: rough, normal: n, view: v };
+        let (mut spec, mut diff) = ([0.0f64; 3], [0.0f64; 3]);
+        for l in &lobes {
+            let (sp, df) = lobe_contribution(&s, l);
+            for c in 0..3 {
+                spec[c] += sp[c];
+                diff[c] += df[c];
+            }
+        }
+        let (rs, rd) = shade_f64(albedo, rough, n, v, &lobes);
+        for (what, a, b) in [("training", ps.spec, ps.diff), ("rendering", rs, rd)] {
+            for c in 0..3 {
+                assert!((a[c] - spec[c]).abs() <= 1e-12 * spec[c].abs().max(1e-3), "{what} spec {c} at R {rough}: {} vs {}", a[c], spec[c]);
+                assert!((b[c] - diff[c]).abs() <= 1e-12 * diff[c].abs().max(1e-3), "{what} diff {c} at R {rough}: {} vs {}", b[c], diff[c]);
+            }
+        }
+        assert!(ps.spec.iter().chain(&ps.diff).any(|&x| x > 1e-3), "the case must light the point");
+    }
+}

@@ -937,16 +937,17 @@ pub fn mii_fit(lobes: &[Sg<f64>], targets: &[([f32; 3], [f32; 3])], scale: f64) 
     (loss, g)
 }
 
-/// Outgoing radiance (linear) at one point: the clamped sums of [`lobe_contribution`].
+/// Outgoing radiance (linear) at one point: the specular and diffuse sums of
+/// [`lobe_contribution`] before their clamps, the BRDF's side formed once ([`BrdfSg`]).
 pub fn shade_f64(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>]) -> ([f64; 3], [f64; 3]) {
-    let s = Surface { albedo, roughness: rough, normal: n, view: v };
+    let brdf = BrdfSg::new(n, v, rough);
     let mut spec = [0.0; 3];
     let mut diff = [0.0; 3];
     for l in lobes {
-        let (sp, df) = lobe_contribution(&s, l);
+        let (fs, fd) = brdf.lobe_factors(l.axis, l.lambda);
         for c in 0..3 {
-            spec[c] += sp[c];
-            diff[c] += df[c];
+            spec[c] += l.mu[c] * fs;
+            diff[c] += l.mu[c] * (albedo[c] * (1.0 / PI)) * fd;
         }
     }
     (spec, diff)
