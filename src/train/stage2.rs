@@ -34,7 +34,7 @@
 //! 2400 steps) fall 110M -> 8.9M and albedo / relit PSNR stay within the seed noise.
 //!
 //! The backward is exact and first-order: forward-mode duals ([`crate::sg::shade::Dual`]) per
-//! lobe through the shading, reverse through the mixture, the weight normalisation and the MLPs
+//! lobe through the shading's two channel-free factors ([`PointShading`]), reverse through the mixture, the weight normalisation and the MLPs
 //! (`Backend::mlp_backward`). It is checked against central differences in the tests.
 
 use std::f64::consts::PI;
