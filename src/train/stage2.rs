@@ -34,8 +34,9 @@
 //! 2400 steps) fall 110M -> 8.9M and albedo / relit PSNR stay within the seed noise.
 //!
 //! The backward is exact and first-order: forward-mode duals ([`crate::sg::shade::Dual`]) per
-//! lobe through the shading's two channel-free factors ([`PointShading`]), reverse through the mixture, the weight normalisation and the MLPs
-//! (`Backend::mlp_backward`). It is checked against central differences in the tests.
+//! lobe through the shading's two channel-free factors ([`PointShading`]), reverse through the
+//! mixture, the weight normalisation and the MLPs (`Backend::mlp_backward`). It is checked against
+//! central differences in the tests.
 
 use std::f64::consts::PI;
 use std::path::Path;
@@ -54,7 +55,7 @@ use crate::nn::params::ParamStore;
 use crate::render::grid::SdfGrid;
 use crate::render::{trace, trace_secondary, Rays, TraceConfig};
 use crate::sg::env::{EnvSgs, SgLobe};
-use crate::sg::shade::{lobe_contribution, normalize, BrdfSg, sg_eval, Dual, Sg, Surface, LAMBDA_MIN, R_MIN};
+use crate::sg::shade::{normalize, sg_eval, BrdfSg, Dual, Sg, LAMBDA_MIN, R_MIN};
 use crate::util::DataError;
 
 /// How light blocked by the object itself is modelled.
@@ -938,7 +939,8 @@ pub fn mii_fit(lobes: &[Sg<f64>], targets: &[([f32; 3], [f32; 3])], scale: f64) 
 }
 
 /// Outgoing radiance (linear) at one point: the specular and diffuse sums of
-/// [`lobe_contribution`] before their clamps, the BRDF's side formed once ([`BrdfSg`]).
+/// [`crate::sg::shade::lobe_contribution`] before their clamps, the BRDF's side formed once
+/// ([`BrdfSg`]).
 pub fn shade_f64(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>]) -> ([f64; 3], [f64; 3]) {
     let brdf = BrdfSg::new(n, v, rough);
     let mut spec = [0.0; 3];
@@ -954,9 +956,9 @@ pub fn shade_f64(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3], lobes: 
 }
 
 /// One point's shading under its lobes, kept for its gradient: per lobe the factors of
-/// [`crate::sg::shade::lobe_factors`] as duals in (R, ξ (3), λ), the BRDF's side formed once. Amplitude and albedo enter linearly, so five
-/// tangents give the whole gradient (not eleven through every channel). `spec`/`diff` are
-/// [`shade_f64`]'s sums, computed the same way.
+/// [`crate::sg::shade::lobe_factors`] as duals in (R, ξ (3), λ), the BRDF's side formed once.
+/// Amplitude and albedo enter linearly, so five tangents give the whole gradient (not eleven
+/// through every channel). `spec`/`diff` are [`shade_f64`]'s sums, computed the same way.
 pub struct PointShading {
     pub spec: [f64; 3],
     pub diff: [f64; 3],
@@ -1015,15 +1017,19 @@ pub fn shade_normal_grad(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3],
     let wd = [0, 1, 2].map(|c| if diff[c] > 0.0 { d_out[c] } else { 0.0 });
     type D = Dual<3>;
     let cst = |x: f64| D { v: x, d: [0.0; 3] };
-    let s = Surface { albedo: albedo.map(cst), roughness: cst(rough), normal: [D::var(n[0], 0), D::var(n[1], 1), D::var(n[2], 2)], view: v.map(cst) };
+    // The BRDF's side once per point (as `PointShading`), the normal's tangents through it.
+    let brdf = BrdfSg::new([D::var(n[0], 0), D::var(n[1], 1), D::var(n[2], 2)], v.map(cst), cst(rough));
     let mut dn = [0.0; 3];
     for l in lobes {
-        let g = Sg { axis: l.axis.map(cst), lambda: cst(l.lambda), mu: l.mu.map(cst) };
-        let (sp, df) = lobe_contribution(&s, &g);
+        let (fs, fd) = brdf.lobe_factors(l.axis.map(cst), cst(l.lambda));
+        // spec_c = μ_c·F_s, diff_c = μ_c·(a_c/π)·F_d.
+        let (mut cs, mut cd) = (0.0, 0.0);
         for c in 0..3 {
-            for (a, d) in dn.iter_mut().enumerate() {
-                *d += ws[c] * sp[c].d[a] + wd[c] * df[c].d[a];
-            }
+            cs += ws[c] * l.mu[c];
+            cd += wd[c] * l.mu[c] * (albedo[c] * (1.0 / PI));
+        }
+        for (a, d) in dn.iter_mut().enumerate() {
+            *d += cs * fs.d[a] + cd * fd.d[a];
         }
     }
     dn
