@@ -1017,6 +1017,40 @@ mod tests {
     }
 
     #[test]
+    fn a_cells_corners_are_the_vertex_indices_and_trilinear_weights() {
+        // `Corners::of` forms the 8 indices from per-axis terms and the weights from shared
+        // products: against `vertex_index` and the per-corner product, on a dense and a hashed
+        // level, inside the cube and clamped outside it.
+        let hg = EncodingConfig::HashGrid {
+            levels: 4,
+            features_per_level: 2,
+            log2_table_size: 10,
+            base_resolution: 4,
+            per_level_scale: 2.0,
+            bound: 1.0,
+        };
+        let levels = hg.grid_levels();
+        assert!(levels[1].dense && !levels[3].dense);
+        for lvl in [levels[1], levels[3]] {
+            for p in [[0.3f64, -0.71, 0.05], [-0.999, 0.5, 0.999], [1.7, -2.0, 0.2]] {
+                let k = Corners::of(&lvl, p, 1.0, 0.5, 1023);
+                let cell = locate(p, 1.0, 0.5, lvl.resolution);
+                assert_eq!(k.inside, cell.inside);
+                let dw = k.dw();
+                for c in 0..8 {
+                    let bit = [c & 1, (c >> 1) & 1, c >> 2];
+                    let v = [0, 1, 2].map(|d| cell.base[d] + bit[d] as u32);
+                    assert_eq!(k.idx[c], (lvl.offset + vertex_index(&lvl, v, 1023)) as usize, "corner {c} of {p:?}");
+                    let a = [0, 1, 2].map(|d| if bit[d] == 1 { cell.frac[d] } else { 1.0 - cell.frac[d] });
+                    assert_eq!(k.w[c], a[0] * a[1] * a[2], "weight of corner {c} of {p:?}");
+                    let sign = bit.map(|b| if b == 1 { 1.0 } else { -1.0 });
+                    assert_eq!(dw[c], [sign[0] * a[1] * a[2], a[0] * sign[1] * a[2], a[0] * a[1] * sign[2]]);
+                }
+            }
+        }
+    }
+
+    #[test]
     fn sizes_and_levels() {
         let pe = EncodingConfig::frequency(6);
         assert_eq!(pe.out_dim(3), 39);

@@ -601,7 +601,6 @@ impl SdfField {
     }
 }
 
-/// Whether two slices hold the same bits (NaN included), compared in parallel blocks.
 /// Mirrors `RowParams` in `shaders/field.wgsl`.
 #[repr(C)]
 #[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
