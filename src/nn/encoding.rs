@@ -1016,19 +1016,25 @@ mod tests {
         assert_eq!(vertex_index(&hashed, [1, 2, 3], 1023) as u64, expected);
     }
 
-    #[test]
-    fn a_cells_corners_are_the_vertex_indices_and_trilinear_weights() {
-        // `Corners::of` forms the 8 indices from per-axis terms and the weights from shared
-        // products: against `vertex_index` and the per-corner product, on a dense and a hashed
-        // level, inside the cube and clamped outside it.
-        let hg = EncodingConfig::HashGrid {
+    /// 4 levels of 2 features over `[-1, 1]³`, resolutions 4 to 32 in a 2^10 table: two dense
+    /// levels and two hashed ones.
+    fn four_levels() -> EncodingConfig {
+        EncodingConfig::HashGrid {
             levels: 4,
             features_per_level: 2,
             log2_table_size: 10,
             base_resolution: 4,
             per_level_scale: 2.0,
             bound: 1.0,
-        };
+        }
+    }
+
+    #[test]
+    fn a_cells_corners_are_the_vertex_indices_and_trilinear_weights() {
+        // `Corners::of` forms the 8 indices from per-axis terms and the weights from shared
+        // products: against `vertex_index` and the per-corner product, on a dense and a hashed
+        // level, inside the cube and clamped outside it.
+        let hg = four_levels();
         let levels = hg.grid_levels();
         assert!(levels[1].dense && !levels[3].dense);
         for lvl in [levels[1], levels[3]] {
@@ -1055,14 +1061,7 @@ mod tests {
         let pe = EncodingConfig::frequency(6);
         assert_eq!(pe.out_dim(3), 39);
         assert_eq!(pe.num_params(), 0);
-        let hg = EncodingConfig::HashGrid {
-            levels: 4,
-            features_per_level: 2,
-            log2_table_size: 10,
-            base_resolution: 4,
-            per_level_scale: 2.0,
-            bound: 1.0,
-        };
+        let hg = four_levels();
         let lv = hg.grid_levels();
         // 5^3 = 125 and 9^3 = 729 fit in 1024 entries (dense); 17^3 and 33^3 do not (hashed).
         assert_eq!(
