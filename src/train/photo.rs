@@ -20,6 +20,16 @@ pub trait PhotoView: Sync {
     fn centre(&self) -> [f32; 3];
     /// Linear RGB at pixel coordinates (bilinear), None outside the image or off the mask.
     fn colour_at(&self, px: [f32; 2]) -> Option<[f32; 3]>;
+    /// The 3×3 pixel patch around `px` (None if any pixel is off the image or the mask). A
+    /// provided method, so its nine lookups are static calls into the implementation.
+    fn patch(&self, px: [f32; 2]) -> Option<[[f32; 3]; 9]> {
+        let mut out = [[0.0; 3]; 9];
+        for (k, o) in out.iter_mut().enumerate() {
+            let (dx, dy) = ((k % 3) as f32 - 1.0, (k / 3) as f32 - 1.0);
+            *o = self.colour_at([px[0] + dx, px[1] + dy])?;
+        }
+        Some(out)
+    }
 }
 
 fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
@@ -139,11 +149,11 @@ pub struct ConcavityReport {
     pub dropped_fragments: usize,
 }
 
-/// Photo-consistency cost of `p` against the reference colour patch: the mean of the
-/// `best` lowest per-view patch costs (|√a − √b|, mean over a 3×3 pixel patch and channels),
-/// skipping `reference` and views that do not show `p` on their mask. None when fewer than
-/// `best` views show it.
-fn consistency(views: &[&dyn PhotoView], reference: usize, others: &[usize], patch: &[[f32; 3]; 9], p: [f32; 3], best: usize, costs: &mut Vec<f32>) -> Option<f32> {
+/// Photo-consistency cost of `p` against the reference colour patch, given as its square roots
+/// (`ref_sqrt`, see [`sqrt_patch`]): the mean of the `best` lowest per-view patch costs (|√a − √b|,
+/// mean over a 3×3 pixel patch and channels), skipping `reference` and views that do not show `p`
+/// on their mask. None when fewer than `best` views show it.
+fn consistency(views: &[&dyn PhotoView], reference: usize, others: &[usize], ref_sqrt: &[[f32; 3]; 9], p: [f32; 3], best: usize, costs: &mut Vec<f32>) -> Option<f32> {
     costs.clear();
     let to_ref = sub(views[reference].centre(), p);
     for &vi in others {
@@ -153,11 +163,11 @@ fn consistency(views: &[&dyn PhotoView], reference: usize, others: &[usize], pat
             continue;
         }
         let Some(px) = v.project(p) else { continue };
-        let Some(c) = sample_patch(v, px) else { continue };
+        let Some(c) = v.patch(px) else { continue };
         let mut e = 0.0;
-        for (a, b) in c.iter().zip(patch) {
+        for (a, b) in c.iter().zip(ref_sqrt) {
             for ch in 0..3 {
-                e += (a[ch].max(0.0).sqrt() - b[ch].max(0.0).sqrt()).abs();
+                e += (a[ch].max(0.0).sqrt() - b[ch]).abs();
             }
         }
         costs.push(e / 27.0);
@@ -169,14 +179,9 @@ fn consistency(views: &[&dyn PhotoView], reference: usize, others: &[usize], pat
     Some(costs[..best].iter().sum::<f32>() / best as f32)
 }
 
-/// The 3×3 pixel patch around `px` (None if any pixel is off the image or the mask).
-fn sample_patch(v: &dyn PhotoView, px: [f32; 2]) -> Option<[[f32; 3]; 9]> {
-    let mut out = [[0.0; 3]; 9];
-    for (k, o) in out.iter_mut().enumerate() {
-        let (dx, dy) = ((k % 3) as f32 - 1.0, (k / 3) as f32 - 1.0);
-        *o = v.colour_at([px[0] + dx, px[1] + dy])?;
-    }
-    Some(out)
+/// `√max(c, 0)` of every channel of a patch (the colour space [`consistency`] compares in).
+fn sqrt_patch(patch: &[[f32; 3]; 9]) -> [[f32; 3]; 9] {
+    patch.map(|c| c.map(|v| v.max(0.0).sqrt()))
 }
 
 /// Carve the concavities a visual hull cannot see (the inside of a bowl, a cup, the gap under an
@@ -247,7 +252,8 @@ pub fn carve_concavities(views: &[&dyn PhotoView], inside: &mut [bool], res: usi
                         continue;
                     }
                     let Some(px) = v.project(p) else { continue };
-                    let Some(patch) = sample_patch(*v, px) else { continue };
+                    let Some(patch) = v.patch(px) else { continue };
+                    let patch = sqrt_patch(&patch);
                     let dir = [-to_cam[0], -to_cam[1], -to_cam[2]];
                     let at = |t: f32| [p[0] + dir[0] * t * h, p[1] + dir[1] * t * h, p[2] + dir[2] * t * h];
                     // Around the surface: −1 … +1 voxels.

@@ -22,7 +22,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::Context as _;
-use glam::{DMat3, DQuat, DVec3};
+use glam::{DMat3, DMat4, DQuat, DVec3};
 
 use super::hull::{carve, signed_distance, Grid3, MaskView};
 use super::photo::{project_colour, PhotoView};
@@ -82,12 +82,15 @@ pub struct BakeArgs {
 pub struct ViewAdapter<'a> {
     view: &'a View,
     centre: [f32; 3],
+    /// The inverse of the camera's pose, formed once (carving projects millions of points).
+    camera_from_world: DMat4,
 }
 
 impl<'a> ViewAdapter<'a> {
     pub fn new(view: &'a View) -> Self {
-        Self { view, centre: view.camera.center().as_vec3().to_array() }
+        Self { view, centre: view.camera.center().as_vec3().to_array(), camera_from_world: view.camera.world_from_camera.inverse() }
     }
+    #[inline]
     fn inside(&self, px: [f32; 2]) -> bool {
         let c = &self.view.camera;
         px[0] >= 0.0 && px[1] >= 0.0 && (px[0] as usize) < c.width && (px[1] as usize) < c.height
@@ -96,7 +99,7 @@ impl<'a> ViewAdapter<'a> {
 
 impl MaskView for ViewAdapter<'_> {
     fn project(&self, p: [f32; 3]) -> Option<[f32; 2]> {
-        let q = self.view.camera.project(DVec3::from(p.map(f64::from)))?;
+        let q = self.view.camera.project_camera_point(self.camera_from_world.transform_point3(DVec3::from(p.map(f64::from))))?;
         Some([q.x as f32, q.y as f32])
     }
     fn mask_at(&self, px: [f32; 2]) -> Option<f32> {
@@ -111,21 +114,63 @@ impl PhotoView for ViewAdapter<'_> {
     fn centre(&self) -> [f32; 3] {
         self.centre
     }
+    #[inline]
     fn colour_at(&self, px: [f32; 2]) -> Option<[f32; 3]> {
         if !self.inside(px) || self.view.mask_at(px[0] as f64, px[1] as f64) < 0.5 {
             return None;
         }
         Some(bilinear_rgb(self.view, px))
     }
+    /// [`PhotoView::patch`] with the image, mask and sizes looked up once for the nine pixels:
+    /// the same arithmetic per pixel as `colour_at`, so the same values to the bit.
+    fn patch(&self, px: [f32; 2]) -> Option<[[f32; 3]; 9]> {
+        let (cw, ch) = (self.view.camera.width, self.view.camera.height);
+        let mask = self.view.mask.as_deref();
+        let img = &self.view.image;
+        let (w, h) = (img.width, img.height);
+        let (wmax, hmax) = ((w - 1) as f32, (h - 1) as f32);
+        let chans = [0, 1, 2].map(|k: usize| k.min(img.channels - 1));
+        let data = &img.data[..];
+        let mut out = [[0.0; 3]; 9];
+        for (k, o) in out.iter_mut().enumerate() {
+            let (dx, dy) = ((k % 3) as f32 - 1.0, (k / 3) as f32 - 1.0);
+            let q = [px[0] + dx, px[1] + dy];
+            // `inside` (which implies `View::mask_at`'s own bounds test), then the mask.
+            if !(q[0] >= 0.0 && q[1] >= 0.0 && (q[0] as usize) < cw && (q[1] as usize) < ch) {
+                return None;
+            }
+            if let Some(m) = mask {
+                if m[q[1] as usize * cw + q[0] as usize] < 0.5 {
+                    return None;
+                }
+            }
+            // `bilinear_rgb`.
+            let fx = (q[0] - 0.5).clamp(0.0, wmax);
+            let fy = (q[1] - 0.5).clamp(0.0, hmax);
+            let (x0, y0) = (fx as usize, fy as usize);
+            let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+            let (tx, ty) = (fx - x0 as f32, fy - y0 as f32);
+            let (r0, r1) = (y0 * w, y1 * w);
+            for (c, &ci) in chans.iter().enumerate() {
+                let at = |row: usize, x: usize| data[(row + x) * img.channels + ci];
+                let top = at(r0, x0) * (1.0 - tx) + at(r0, x1) * tx;
+                let bottom = at(r1, x0) * (1.0 - tx) + at(r1, x1) * tx;
+                o[c] = top * (1.0 - ty) + bottom * ty;
+            }
+        }
+        Some(out)
+    }
 }
 
 /// Bilinear linear-RGB lookup at continuous pixel coordinates (pixel centres at +0.5).
+#[inline]
 fn bilinear_rgb(view: &View, px: [f32; 2]) -> [f32; 3] {
     let img = &view.image;
     let (w, h) = (img.width, img.height);
     let fx = (px[0] - 0.5).clamp(0.0, (w - 1) as f32);
     let fy = (px[1] - 0.5).clamp(0.0, (h - 1) as f32);
-    let (x0, y0) = (fx.floor() as usize, fy.floor() as usize);
+    // Truncation is the floor of these clamped (non-negative) values, without a libm call.
+    let (x0, y0) = (fx as usize, fy as usize);
     let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
     let (tx, ty) = (fx - x0 as f32, fy - y0 as f32);
     let c = img.channels;
@@ -561,6 +606,50 @@ mod tests {
             })
             .collect();
         HullSdf::new(signed_distance(&inside, res, 1.0), rotation).unwrap()
+    }
+
+    /// A view's 3×3 patch comes out of `ViewAdapter::patch` exactly as nine `colour_at` lookups
+    /// give it (the provided method): everywhere in the image, at its edges, across the mask's
+    /// edge, off the image, for a soft mask value at 0.5, with and without a mask, for 1- and
+    /// 3-channel images.
+    #[test]
+    fn a_views_patch_is_its_nine_pixel_lookups_to_the_bit() {
+        struct PerPixel<'a>(ViewAdapter<'a>);
+        impl PhotoView for PerPixel<'_> {
+            fn project(&self, p: [f32; 3]) -> Option<[f32; 2]> {
+                PhotoView::project(&self.0, p)
+            }
+            fn centre(&self) -> [f32; 3] {
+                self.0.centre()
+            }
+            fn colour_at(&self, px: [f32; 2]) -> Option<[f32; 3]> {
+                self.0.colour_at(px)
+            }
+        }
+        let (w, h) = (23usize, 17usize);
+        for (channels, masked) in [(3usize, true), (3, false), (1, true)] {
+            let mut image = crate::image_io::ImageF32::new(w, h, channels);
+            for (i, v) in image.data.iter_mut().enumerate() {
+                *v = ((i * 7919) % 1009) as f32 / 1009.0 - 0.1;
+            }
+            // Foreground left of column 15, a soft 0.5 column at 15 (kept: the test is ≥ 0.5), 0.2 elsewhere.
+            let soft = |x: usize, y: usize| if y <= 2 || x > 15 { 0.2 } else if x == 15 { 0.5 } else { 1.0 };
+            let mask = masked.then(|| (0..w * h).map(|i| soft(i % w, i / w)).collect());
+            let camera = crate::scene::Camera { width: w, height: h, fx: 20.0, fy: 20.0, cx: 11.5, cy: 8.5, distortion: None, world_from_camera: DMat4::IDENTITY };
+            let view = View { name: "v".into(), split: Split::Train, camera, image, mask, image_path: PathBuf::new() };
+            let (fast, slow) = (ViewAdapter::new(&view), PerPixel(ViewAdapter::new(&view)));
+            let (mut some, mut none) = (0, 0);
+            for i in 0..=60 {
+                for j in 0..=44 {
+                    let px = [i as f32 * 0.4 - 0.7 + 1e-3 * j as f32, j as f32 * 0.43 - 0.9];
+                    let (a, b) = (fast.patch(px), slow.patch(px));
+                    assert_eq!(a.map(|p| p.map(|c| c.map(f32::to_bits))), b.map(|p| p.map(|c| c.map(f32::to_bits))), "channels {channels}, mask {masked}, at {px:?}");
+                    if a.is_some() { some += 1 } else { none += 1 }
+                }
+            }
+            assert!(some > 200 && none > 200, "both outcomes exercised: {some} patches, {none} refused");
+            assert_eq!(fast.patch([f32::NAN, 3.0]), None);
+        }
     }
 
     /// The grid field's gradient agrees with central differences of its own values, and a
