@@ -114,72 +114,66 @@ impl PhotoView for ViewAdapter<'_> {
     fn centre(&self) -> [f32; 3] {
         self.centre
     }
-    #[inline]
     fn colour_at(&self, px: [f32; 2]) -> Option<[f32; 3]> {
-        if !self.inside(px) || self.view.mask_at(px[0] as f64, px[1] as f64) < 0.5 {
-            return None;
-        }
-        Some(bilinear_rgb(self.view, px))
+        Pixels::of(self.view).colour_at(px)
     }
-    /// [`PhotoView::patch`] with the image, mask and sizes looked up once for the nine pixels:
-    /// the same arithmetic per pixel as `colour_at`, so the same values to the bit.
+    /// The nine lookups of [`PhotoView::patch`] with the image, mask and sizes gathered once.
     fn patch(&self, px: [f32; 2]) -> Option<[[f32; 3]; 9]> {
-        let (cw, ch) = (self.view.camera.width, self.view.camera.height);
-        let mask = self.view.mask.as_deref();
-        let img = &self.view.image;
-        let (w, h) = (img.width, img.height);
-        let (wmax, hmax) = ((w - 1) as f32, (h - 1) as f32);
-        let chans = [0, 1, 2].map(|k: usize| k.min(img.channels - 1));
-        let data = &img.data[..];
+        let pixels = Pixels::of(self.view);
         let mut out = [[0.0; 3]; 9];
         for (k, o) in out.iter_mut().enumerate() {
             let (dx, dy) = ((k % 3) as f32 - 1.0, (k / 3) as f32 - 1.0);
-            let q = [px[0] + dx, px[1] + dy];
-            // `inside` (which implies `View::mask_at`'s own bounds test), then the mask.
-            if !(q[0] >= 0.0 && q[1] >= 0.0 && (q[0] as usize) < cw && (q[1] as usize) < ch) {
-                return None;
-            }
-            if let Some(m) = mask {
-                if m[q[1] as usize * cw + q[0] as usize] < 0.5 {
-                    return None;
-                }
-            }
-            // `bilinear_rgb`.
-            let fx = (q[0] - 0.5).clamp(0.0, wmax);
-            let fy = (q[1] - 0.5).clamp(0.0, hmax);
-            let (x0, y0) = (fx as usize, fy as usize);
-            let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
-            let (tx, ty) = (fx - x0 as f32, fy - y0 as f32);
-            let (r0, r1) = (y0 * w, y1 * w);
-            for (c, &ci) in chans.iter().enumerate() {
-                let at = |row: usize, x: usize| data[(row + x) * img.channels + ci];
-                let top = at(r0, x0) * (1.0 - tx) + at(r0, x1) * tx;
-                let bottom = at(r1, x0) * (1.0 - tx) + at(r1, x1) * tx;
-                o[c] = top * (1.0 - ty) + bottom * ty;
-            }
+            *o = pixels.colour_at([px[0] + dx, px[1] + dy])?;
         }
         Some(out)
     }
 }
 
-/// Bilinear linear-RGB lookup at continuous pixel coordinates (pixel centres at +0.5).
-#[inline]
-fn bilinear_rgb(view: &View, px: [f32; 2]) -> [f32; 3] {
-    let img = &view.image;
-    let (w, h) = (img.width, img.height);
-    let fx = (px[0] - 0.5).clamp(0.0, (w - 1) as f32);
-    let fy = (px[1] - 0.5).clamp(0.0, (h - 1) as f32);
-    // Truncation is the floor of these clamped (non-negative) values, without a libm call.
-    let (x0, y0) = (fx as usize, fy as usize);
-    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
-    let (tx, ty) = (fx - x0 as f32, fy - y0 as f32);
-    let c = img.channels;
-    let at = |x: usize, y: usize, k: usize| img.data[(y * w + x) * c + k.min(c - 1)];
-    [0, 1, 2].map(|k| {
-        let top = at(x0, y0, k) * (1.0 - tx) + at(x1, y0, k) * tx;
-        let bottom = at(x0, y1, k) * (1.0 - tx) + at(x1, y1, k) * tx;
-        top * (1.0 - ty) + bottom * ty
-    })
+/// What a colour lookup reads of a view (photo consistency samples millions of 3×3 patches).
+struct Pixels<'a> {
+    width: usize,
+    height: usize,
+    mask: Option<&'a [f32]>,
+    image: &'a crate::image_io::ImageF32,
+    /// The image channel of R, G and B (all 0 for a one-channel image).
+    channels: [usize; 3],
+}
+
+impl<'a> Pixels<'a> {
+    #[inline(always)]
+    fn of(view: &'a View) -> Self {
+        let image = &view.image;
+        Self { width: view.camera.width, height: view.camera.height, mask: view.mask.as_deref(), image, channels: [0, 1, 2].map(|k: usize| k.min(image.channels - 1)) }
+    }
+
+    /// Linear RGB at continuous pixel coordinates (pixel centres at +0.5), bilinear; None off
+    /// the image or where the mask is below 0.5 (`View::mask_at` at the pixel).
+    #[inline(always)]
+    fn colour_at(&self, px: [f32; 2]) -> Option<[f32; 3]> {
+        if !(px[0] >= 0.0 && px[1] >= 0.0 && (px[0] as usize) < self.width && (px[1] as usize) < self.height) {
+            return None;
+        }
+        if self.mask.is_some_and(|m| m[px[1] as usize * self.width + px[0] as usize] < 0.5) {
+            return None;
+        }
+        let img = self.image;
+        let (w, h, c, data) = (img.width, img.height, img.channels, &img.data[..]);
+        let fx = (px[0] - 0.5).clamp(0.0, (w - 1) as f32);
+        let fy = (px[1] - 0.5).clamp(0.0, (h - 1) as f32);
+        // Truncation is the floor of these clamped (non-negative) values, without a libm call.
+        let (x0, y0) = (fx as usize, fy as usize);
+        let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+        let (tx, ty) = (fx - x0 as f32, fy - y0 as f32);
+        let (r0, r1) = (y0 * w, y1 * w);
+        let mut out = [0.0; 3];
+        for (o, &k) in out.iter_mut().zip(&self.channels) {
+            let at = |row: usize, x: usize| data[(row + x) * c + k];
+            let top = at(r0, x0) * (1.0 - tx) + at(r0, x1) * tx;
+            let bottom = at(r1, x0) * (1.0 - tx) + at(r1, x1) * tx;
+            *o = top * (1.0 - ty) + bottom * ty;
+        }
+        Some(out)
+    }
 }
 
 /// Normalised frame → asset frame: the rotation taking the detected up axis to +Y (exact axis
@@ -608,22 +602,39 @@ mod tests {
         HullSdf::new(signed_distance(&inside, res, 1.0), rotation).unwrap()
     }
 
-    /// A view's 3×3 patch comes out of `ViewAdapter::patch` exactly as nine `colour_at` lookups
-    /// give it (the provided method): everywhere in the image, at its edges, across the mask's
+    /// A view's 3×3 patch from `ViewAdapter::patch` is, to the bit, nine lookups of a plain
+    /// reference (the view's own `View::mask_at`, a floor-based bilinear lookup, through the
+    /// provided `PhotoView::patch`): everywhere in the image, at its edges, across the mask's
     /// edge, off the image, for a soft mask value at 0.5, with and without a mask, for 1- and
     /// 3-channel images.
     #[test]
     fn a_views_patch_is_its_nine_pixel_lookups_to_the_bit() {
-        struct PerPixel<'a>(ViewAdapter<'a>);
-        impl PhotoView for PerPixel<'_> {
-            fn project(&self, p: [f32; 3]) -> Option<[f32; 2]> {
-                PhotoView::project(&self.0, p)
+        struct Reference<'a>(&'a View);
+        impl PhotoView for Reference<'_> {
+            fn project(&self, _: [f32; 3]) -> Option<[f32; 2]> {
+                None
             }
             fn centre(&self) -> [f32; 3] {
-                self.0.centre()
+                [0.0; 3]
             }
             fn colour_at(&self, px: [f32; 2]) -> Option<[f32; 3]> {
-                self.0.colour_at(px)
+                let (v, img) = (self.0, &self.0.image);
+                let on_image = px[0] >= 0.0 && px[1] >= 0.0 && (px[0] as usize) < v.camera.width && (px[1] as usize) < v.camera.height;
+                if !on_image || v.mask_at(px[0] as f64, px[1] as f64) < 0.5 {
+                    return None;
+                }
+                let (w, h, c) = (img.width, img.height, img.channels);
+                let fx = (px[0] - 0.5).clamp(0.0, (w - 1) as f32);
+                let fy = (px[1] - 0.5).clamp(0.0, (h - 1) as f32);
+                let (x0, y0) = (fx.floor() as usize, fy.floor() as usize);
+                let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+                let (tx, ty) = (fx - x0 as f32, fy - y0 as f32);
+                let at = |x: usize, y: usize, k: usize| img.data[(y * w + x) * c + k.min(c - 1)];
+                Some([0, 1, 2].map(|k| {
+                    let top = at(x0, y0, k) * (1.0 - tx) + at(x1, y0, k) * tx;
+                    let bottom = at(x0, y1, k) * (1.0 - tx) + at(x1, y1, k) * tx;
+                    top * (1.0 - ty) + bottom * ty
+                }))
             }
         }
         let (w, h) = (23usize, 17usize);
@@ -637,7 +648,7 @@ mod tests {
             let mask = masked.then(|| (0..w * h).map(|i| soft(i % w, i / w)).collect());
             let camera = crate::scene::Camera { width: w, height: h, fx: 20.0, fy: 20.0, cx: 11.5, cy: 8.5, distortion: None, world_from_camera: DMat4::IDENTITY };
             let view = View { name: "v".into(), split: Split::Train, camera, image, mask, image_path: PathBuf::new() };
-            let (fast, slow) = (ViewAdapter::new(&view), PerPixel(ViewAdapter::new(&view)));
+            let (fast, slow) = (ViewAdapter::new(&view), Reference(&view));
             let (mut some, mut none) = (0, 0);
             for i in 0..=60 {
                 for j in 0..=44 {
@@ -649,6 +660,10 @@ mod tests {
             }
             assert!(some > 200 && none > 200, "both outcomes exercised: {some} patches, {none} refused");
             assert_eq!(fast.patch([f32::NAN, 3.0]), None);
+            for px in [[3.3f32, 4.6], [0.2, 16.9], [14.7, 9.1], [22.9, 5.0]] {
+                let bits = |c: Option<[f32; 3]>| c.map(|c| c.map(f32::to_bits));
+                assert_eq!(bits(fast.colour_at(px)), bits(slow.colour_at(px)), "colour_at {px:?}");
+            }
         }
     }
 
