@@ -90,11 +90,6 @@ impl<'a> ViewAdapter<'a> {
     pub fn new(view: &'a View) -> Self {
         Self { view, centre: view.camera.center().as_vec3().to_array(), camera_from_world: view.camera.world_from_camera.inverse() }
     }
-    #[inline]
-    fn inside(&self, px: [f32; 2]) -> bool {
-        let c = &self.view.camera;
-        px[0] >= 0.0 && px[1] >= 0.0 && (px[0] as usize) < c.width && (px[1] as usize) < c.height
-    }
 }
 
 impl MaskView for ViewAdapter<'_> {
@@ -103,7 +98,7 @@ impl MaskView for ViewAdapter<'_> {
         Some([q.x as f32, q.y as f32])
     }
     fn mask_at(&self, px: [f32; 2]) -> Option<f32> {
-        self.inside(px).then(|| self.view.mask_at(px[0] as f64, px[1] as f64))
+        Pixels::of(self.view).mask_at(px)
     }
 }
 
@@ -146,14 +141,21 @@ impl<'a> Pixels<'a> {
         Self { width: view.camera.width, height: view.camera.height, mask: view.mask.as_deref(), image, channels: [0, 1, 2].map(|k: usize| k.min(image.channels - 1)) }
     }
 
-    /// Linear RGB at continuous pixel coordinates (pixel centres at +0.5), bilinear; None off
-    /// the image or where the mask is below 0.5 (`View::mask_at` at the pixel).
+    /// The mask at continuous pixel coordinates (1 without a mask, as `View::mask_at`); None off
+    /// the image.
     #[inline(always)]
-    fn colour_at(&self, px: [f32; 2]) -> Option<[f32; 3]> {
+    fn mask_at(&self, px: [f32; 2]) -> Option<f32> {
         if !(px[0] >= 0.0 && px[1] >= 0.0 && (px[0] as usize) < self.width && (px[1] as usize) < self.height) {
             return None;
         }
-        if self.mask.is_some_and(|m| m[px[1] as usize * self.width + px[0] as usize] < 0.5) {
+        Some(self.mask.map_or(1.0, |m| m[px[1] as usize * self.width + px[0] as usize]))
+    }
+
+    /// Linear RGB at continuous pixel coordinates (pixel centres at +0.5), bilinear; None off
+    /// the image or where the mask is below 0.5.
+    #[inline(always)]
+    fn colour_at(&self, px: [f32; 2]) -> Option<[f32; 3]> {
+        if self.mask_at(px)? < 0.5 {
             return None;
         }
         let img = self.image;
@@ -604,7 +606,7 @@ mod tests {
 
     /// A view's 3×3 patch from `ViewAdapter::patch` is, to the bit, nine lookups of a plain
     /// reference (the view's own `View::mask_at`, a floor-based bilinear lookup, through the
-    /// provided `PhotoView::patch`): everywhere in the image, at its edges, across the mask's
+    /// provided `PhotoView::patch`), and its mask lookup is `View::mask_at` on the image: everywhere in the image, at its edges, across the mask's
     /// edge, off the image, for a soft mask value at 0.5, with and without a mask, for 1- and
     /// 3-channel images.
     #[test]
@@ -656,6 +658,9 @@ mod tests {
                     let (a, b) = (fast.patch(px), slow.patch(px));
                     assert_eq!(a.map(|p| p.map(|c| c.map(f32::to_bits))), b.map(|p| p.map(|c| c.map(f32::to_bits))), "channels {channels}, mask {masked}, at {px:?}");
                     if a.is_some() { some += 1 } else { none += 1 }
+                    let on_image = px[0] >= 0.0 && px[1] >= 0.0 && (px[0] as usize) < w && (px[1] as usize) < h;
+                    let reference = on_image.then(|| view.mask_at(px[0] as f64, px[1] as f64));
+                    assert_eq!(MaskView::mask_at(&fast, px), reference, "mask_at {px:?}");
                 }
             }
             assert!(some > 200 && none > 200, "both outcomes exercised: {some} patches, {none} refused");
