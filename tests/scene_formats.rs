@@ -6,7 +6,7 @@ use std::path::Path;
 
 use glam::{DMat3, DQuat, DVec2, DVec3};
 use pii_bake::image_io::write_png8;
-use pii_bake::scene::{load, Format, ReadOptions, Split};
+use pii_bake::scene::{load, Downscale, Format, ReadOptions, Split};
 
 const W: usize = 32;
 const H: usize = 24;
@@ -193,7 +193,50 @@ fn nerfstudio_transforms_with_distortion_masks_and_splits() {
         }
     }
     // --downscale 2 on 32x24: intrinsics halve exactly
-    let half = load(d.path(), &ReadOptions { downscale: 2, ..Default::default() }).unwrap();
+    let half = load(d.path(), &ReadOptions { downscale: Downscale::By(2), ..Default::default() }).unwrap();
     assert_eq!((half.views[0].camera.width, half.views[0].camera.height), (16, 12));
     assert_eq!(half.views[0].camera.cx, CX / 2.0);
+}
+
+/// `--downscale auto` (the default) reads photos larger than the model resolves at the smallest
+/// integer factor within `AUTO_MAX_SIDE`, says so, and leaves a given factor alone.
+#[test]
+fn auto_downscale_reads_large_photos_within_the_models_resolution() {
+    let d = tempfile::tempdir().unwrap();
+    // The known cameras at 50x the size: 1600 x 1200 photos, longest side above 1536.
+    let k = 50.0;
+    let (w, h) = (W * 50, H * 50);
+    std::fs::create_dir_all(d.path().join("images")).unwrap();
+    let mut frames = Vec::new();
+    for (i, (r, t)) in known_cameras().iter().enumerate() {
+        write_png8(&d.path().join(format!("images/im{i}.png")), w, h, 3, &vec![0.5; w * h * 3], true).unwrap();
+        let mut mask = vec![0.0f32; w * h];
+        mask[..w * h / 2].iter_mut().for_each(|v| *v = 1.0);
+        write_png8(&d.path().join(format!("m{i}.png")), w, h, 1, &mask, false).unwrap();
+        let r_wc = r.transpose();
+        let c = -(r_wc * *t);
+        let cols = [r_wc.x_axis, -r_wc.y_axis, -r_wc.z_axis, c];
+        let m: Vec<Vec<f64>> = (0..3).map(|row| cols.iter().map(|v| v[row]).collect()).chain([vec![0.0, 0.0, 0.0, 1.0]]).collect();
+        frames.push(serde_json::json!({"file_path": format!("images/im{i}.png"), "mask_path": format!("m{i}.png"), "transform_matrix": m}));
+    }
+    let doc = serde_json::json!({
+        "camera_model": "OPENCV", "fl_x": FX * k, "fl_y": FY * k, "cx": CX * k, "cy": CY * k, "w": w, "h": h, "frames": frames,
+    });
+    std::fs::write(d.path().join("transforms.json"), serde_json::to_string(&doc).unwrap()).unwrap();
+
+    let auto = load(d.path(), &ReadOptions::default()).unwrap();
+    assert_eq!(auto.downscale, 2);
+    assert_eq!((auto.views[0].camera.width, auto.views[0].camera.height), (800, 600));
+    assert_eq!(auto.views[0].camera.fx, FX * k / 2.0);
+    let note = auto.downscale_note.as_deref().expect("an automatic downscale is explained");
+    assert!(note.contains("1/2") && note.contains("1600") && note.contains("--downscale 1"), "{note}");
+    // The same silhouettes at half size: the same normalisation within a few half-size pixels.
+    let full = load(d.path(), &ReadOptions { downscale: Downscale::By(1), ..Default::default() }).unwrap();
+    assert_eq!((full.downscale, full.views[0].camera.width), (1, 1600));
+    assert!(full.downscale_note.is_none());
+    let (a, b) = (auto.normalisation.to_normalised(DVec3::ZERO), full.normalisation.to_normalised(DVec3::ZERO));
+    assert!((a - b).length() < 0.02, "{a} vs {b}");
+    // The bundled scenes' photos are within both limits: read at full size.
+    assert_eq!(Downscale::Auto.resolve(&[(200, 200); 28]), 1);
+    assert_eq!(Downscale::Auto.resolve(&[(512, 512); 66]), 1);
 }

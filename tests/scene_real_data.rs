@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use glam::DVec3;
-use pii_bake::scene::{load, normalise, ReadOptions, Split};
+use pii_bake::scene::{load, normalise, Downscale, ReadOptions, Split};
 
 fn shared_data() -> PathBuf {
     let p = std::env::var("PII_SHARED_DATA")
@@ -37,7 +37,7 @@ fn dtu_scan37_cameras_masks_and_unit_sphere() {
     }
     assert!(scene.normalisation.method.contains("scale_mat"));
     // Downscaling by 2 keeps intrinsics exact and the projection inside the mask.
-    let half = load(&shared_data().join("dtu_scan37"), &ReadOptions { downscale: 2, ..Default::default() }).unwrap();
+    let half = load(&shared_data().join("dtu_scan37"), &ReadOptions { downscale: Downscale::By(2), ..Default::default() }).unwrap();
     for (a, b) in scene.views.iter().zip(&half.views) {
         assert_eq!((b.camera.width, b.camera.height), (200, 150));
         assert!((b.camera.fx * 2.0 - a.camera.fx).abs() < 1e-9 && (b.camera.cx * 2.0 - a.camera.cx).abs() < 1e-9);

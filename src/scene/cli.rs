@@ -4,16 +4,17 @@ use std::path::PathBuf;
 
 use serde_json::json;
 
-use super::{load, ReadOptions, Scene, Split};
+use super::{load, Downscale, ReadOptions, Scene, Split};
 use crate::context::Context;
 
 #[derive(Debug, clap::Args)]
 pub struct InfoArgs {
     /// Scene folder (transforms*.json, cameras_sphere.npz, poses_bounds.npy or COLMAP sparse/0) or file.
     pub scene: PathBuf,
-    /// Integer image downscale factor; intrinsics follow.
-    #[arg(long, default_value_t = 1)]
-    pub downscale: usize,
+    /// Image downscale: `auto` (full size unless the photos are larger than the model resolves,
+    /// see `scene::auto_downscale`) or an integer factor; intrinsics follow.
+    #[arg(long, default_value_t = Downscale::Auto)]
+    pub downscale: Downscale,
     /// Measure the views' silhouette agreement but leave none out.
     #[arg(long)]
     pub keep_all_views: bool,
@@ -52,6 +53,8 @@ pub fn summary(scene: &Scene) -> serde_json::Value {
         "views": scene.views.len(),
         "splits": splits,
         "resolutions": sizes.iter().map(|(w, h)| format!("{w}x{h}")).collect::<Vec<_>>(),
+        "downscale": scene.downscale,
+        "downscale_note": scene.downscale_note,
         "intrinsics": {
             "fx": st(&|c| c.fx), "fy": st(&|c| c.fy), "cx": st(&|c| c.cx), "cy": st(&|c| c.cy),
             "fov_x_deg": st(&|c| c.fov_x().to_degrees()),
@@ -97,7 +100,14 @@ pub fn run(args: &InfoArgs, ctx: &Context) -> anyhow::Result<()> {
         s["splits"]["val"],
         s["splits"]["test"]
     ));
-    ctx.say(format!("resolution   {}", s["resolutions"].as_array().map(|a| a.iter().filter_map(|x| x.as_str()).collect::<Vec<_>>().join(", ")).unwrap_or_default()));
+    ctx.say(format!(
+        "resolution   {}{}",
+        s["resolutions"].as_array().map(|a| a.iter().filter_map(|x| x.as_str()).collect::<Vec<_>>().join(", ")).unwrap_or_default(),
+        if scene.downscale > 1 { format!(" (read at 1/{})", scene.downscale) } else { String::new() }
+    ));
+    if let Some(note) = &scene.downscale_note {
+        ctx.say(note.clone());
+    }
     let i = &s["intrinsics"];
     ctx.say(format!("fx  min/mean/max  {}", f3(&i["fx"])));
     ctx.say(format!("fy  min/mean/max  {}", f3(&i["fy"])));

@@ -255,6 +255,11 @@ pub struct Scene {
     /// The views the silhouette check left out, in the same normalised frame: nothing trains on
     /// them, but a command asked to render a camera (`relight` of a test view) still can.
     pub excluded: Vec<View>,
+    /// The integer factor the images were read at (1 = full size), as [`ReadOptions::downscale`]
+    /// resolved it.
+    pub downscale: usize,
+    /// Why `Downscale::Auto` read the photos below full size (None at full size or a given factor).
+    pub downscale_note: Option<String>,
 }
 
 impl Scene {
@@ -263,11 +268,77 @@ impl Scene {
     }
 }
 
+/// The image scale a scene is read at.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Downscale {
+    /// Full size unless the photos are larger than the model can use or memory should hold: see
+    /// [`auto_downscale`].
+    #[default]
+    Auto,
+    /// This integer factor (1 = full size).
+    By(usize),
+}
+
+impl std::str::FromStr for Downscale {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        if s.eq_ignore_ascii_case("auto") {
+            return Ok(Self::Auto);
+        }
+        match s.parse::<usize>() {
+            Ok(n) if n >= 1 => Ok(Self::By(n)),
+            _ => Err(format!("expected `auto` or an integer factor >= 1, got {s:?}")),
+        }
+    }
+}
+
+impl std::fmt::Display for Downscale {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Auto => f.write_str("auto"),
+            Self::By(n) => write!(f, "{n}"),
+        }
+    }
+}
+
+/// The longest image side `Downscale::Auto` reads. The SDF's finest hash-grid level is capped at
+/// 1024 cells across the bounding sphere's diameter (`SceneSizes::grid_finest`); where that sphere
+/// spans a frame's shorter side, a 3:2 frame of 1536 × 1024 pixels already has one pixel per finest
+/// cell, and larger photos add pixels that no level of the model resolves.
+pub const AUTO_MAX_SIDE: usize = 1536;
+/// The most pixels `Downscale::Auto` reads over all views: about 3.7 GB in memory while training
+/// (55 bytes a pixel, measured), and 32 times the pixels a default stage-1 run draws rays through
+/// (1024 rays × 2000 iterations), so a larger pool adds memory, not information.
+pub const AUTO_MAX_PIXELS: usize = 1 << 26;
+
+/// The factor `Downscale::Auto` reads images of these sizes at: the smallest that brings every
+/// longer side to at most [`AUTO_MAX_SIDE`] and all views together to at most
+/// [`AUTO_MAX_PIXELS`] (1 for photos within both, which the bundled scenes are).
+pub fn auto_downscale(sizes: &[(usize, usize)]) -> usize {
+    let side = sizes.iter().map(|&(w, h)| w.max(h)).max().unwrap_or(0);
+    let mut n = side.div_ceil(AUTO_MAX_SIDE).max(1);
+    let pixels = |n: usize| sizes.iter().map(|&(w, h)| (w / n) * (h / n)).sum::<usize>();
+    while pixels(n) > AUTO_MAX_PIXELS && n < side.max(1) {
+        n += 1;
+    }
+    n
+}
+
+impl Downscale {
+    /// The factor for images of these sizes.
+    pub fn resolve(self, sizes: &[(usize, usize)]) -> usize {
+        match self {
+            Self::Auto => auto_downscale(sizes),
+            Self::By(n) => n,
+        }
+    }
+}
+
 /// How to read a scene.
 #[derive(Clone, Debug)]
 pub struct ReadOptions {
-    /// Integer image downscale factor (1 = full size). Intrinsics follow exactly.
-    pub downscale: usize,
+    /// Image downscale (intrinsics follow exactly); `Auto` by default.
+    pub downscale: Downscale,
     /// Keep the views whose silhouette contradicts the others (see [`consistency`]); they are
     /// still measured and named in the report.
     pub keep_all_views: bool,
@@ -275,7 +346,7 @@ pub struct ReadOptions {
 
 impl Default for ReadOptions {
     fn default() -> Self {
-        Self { downscale: 1, keep_all_views: false }
+        Self { downscale: Downscale::Auto, keep_all_views: false }
     }
 }
 
@@ -336,7 +407,7 @@ pub fn detect(path: &Path) -> Result<Format, DataError> {
 
 /// Read a scene in any supported format, load images and masks, and normalise it into the unit sphere.
 pub fn load(path: &Path, opts: &ReadOptions) -> Result<Scene, DataError> {
-    if opts.downscale == 0 {
+    if opts.downscale == Downscale::By(0) {
         return Err(DataError::new(path, "--downscale must be >= 1"));
     }
     let format = detect(path)?;
@@ -354,7 +425,21 @@ pub fn load(path: &Path, opts: &ReadOptions) -> Result<Scene, DataError> {
     files.extend(raw.iter().filter_map(|r| r.mask_path.as_ref()?.parent().map(|d| format!("masks in {}", d.display()))));
     files.sort();
     files.dedup();
-    let views = load_views(raw, opts.downscale)?;
+    let sizes: Vec<(usize, usize)> = raw.iter().map(|r| (r.camera.width, r.camera.height)).collect();
+    let downscale = opts.downscale.resolve(&sizes);
+    let downscale_note = (opts.downscale == Downscale::Auto && downscale > 1).then(|| {
+        let side = sizes.iter().map(|&(w, h)| w.max(h)).max().unwrap_or(0);
+        let pixels: usize = sizes.iter().map(|&(w, h)| w * h).sum();
+        format!(
+            "photos read at 1/{downscale} size (--downscale auto): their longest side is {side} pixels and they hold {:.0} megapixels in all, more than the model resolves ({AUTO_MAX_SIDE} pixels a side, {:.0} megapixels in all); `--downscale 1` reads them at full size",
+            pixels as f64 / 1e6,
+            AUTO_MAX_PIXELS as f64 / 1e6
+        )
+    });
+    if let Some(note) = &downscale_note {
+        tracing::debug!("{note}");
+    }
+    let views = load_views(raw, downscale)?;
     // Views whose mask contradicts all the others (a failed pose or a wrong mask) would cut the
     // hull, the bound and the mask loss: they are taken out here and reported.
     let (start, half) = normalise::search_cube(&views, &hint);
@@ -380,7 +465,7 @@ pub fn load(path: &Path, opts: &ReadOptions) -> Result<Scene, DataError> {
     };
     let views = views.into_iter().map(to_normalised).collect();
     let excluded = excluded.into_iter().map(|(_, v)| to_normalised(v)).collect();
-    Ok(Scene { format, source: path.to_path_buf(), views, normalisation, silhouettes, excluded })
+    Ok(Scene { format, source: path.to_path_buf(), views, normalisation, silhouettes, excluded, downscale, downscale_note })
 }
 
 fn load_views(raw: Vec<RawView>, n: usize) -> Result<Vec<View>, DataError> {
@@ -567,6 +652,39 @@ pub(crate) fn world_from_camera(r: DMat3, c: DVec3) -> DMat4 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn auto_downscale_keeps_within_the_side_and_pixel_limits() {
+        // Within both: full size (the bundled example, the Ethiopian head, DTU at 400x300).
+        assert_eq!(auto_downscale(&[(200, 200); 28]), 1);
+        assert_eq!(auto_downscale(&[(512, 512); 66]), 1);
+        assert_eq!(auto_downscale(&[(1536, 1024); 40]), 1);
+        // The side: 24 MP DSLR frames to 1500 wide; then the pixels: 50 of those are 75 MP, so 1/5.
+        assert_eq!(auto_downscale(&[(6000, 4000); 20]), 4);
+        assert_eq!(auto_downscale(&[(6000, 4000); 50]), 5);
+        // Video frames: 300 of 1920x1080 are 69 MP at 1/3, over the budget: 1/4.
+        assert_eq!(auto_downscale(&[(1920, 1080); 300]), 4);
+        // The largest view decides the side; no views, no scaling.
+        assert_eq!(auto_downscale(&[(800, 600), (3000, 200)]), 2);
+        assert_eq!(auto_downscale(&[]), 1);
+        for sizes in [vec![(6000, 4000); 50], vec![(1920, 1080); 300], vec![(100_000, 10); 3]] {
+            let n = auto_downscale(&sizes);
+            let px: usize = sizes.iter().map(|&(w, h)| (w / n) * (h / n)).sum();
+            assert!(px <= AUTO_MAX_PIXELS && sizes.iter().all(|&(w, h)| w.max(h).div_ceil(n) <= AUTO_MAX_SIDE), "{n}");
+        }
+    }
+
+    #[test]
+    fn downscale_parses_auto_or_a_positive_factor() {
+        assert_eq!("auto".parse::<Downscale>(), Ok(Downscale::Auto));
+        assert_eq!("AUTO".parse::<Downscale>(), Ok(Downscale::Auto));
+        assert_eq!("3".parse::<Downscale>(), Ok(Downscale::By(3)));
+        for bad in ["0", "-1", "1.5", "half", ""] {
+            assert!(bad.parse::<Downscale>().is_err(), "{bad}");
+        }
+        assert_eq!(Downscale::By(2).to_string(), "2");
+        assert_eq!(Downscale::Auto.to_string(), "auto");
+    }
 
     fn cam() -> Camera {
         let r = DMat3::from_rotation_y(0.3) * DMat3::from_rotation_x(-0.2);

@@ -21,7 +21,7 @@ use crate::backend::Backend;
 use crate::context::Context;
 use crate::mesh::field::{Aabb, SdfField as MeshSdf, SdfSamples};
 use crate::render::TraceMode;
-use crate::scene::{ReadOptions, View};
+use crate::scene::{Downscale, ReadOptions, View};
 
 #[derive(Debug, clap::Args)]
 pub struct BenchTrainArgs {
@@ -47,9 +47,9 @@ pub struct BenchTrainArgs {
     /// Marching grid resolution for the measurements.
     #[arg(long, default_value_t = 128)]
     pub mesh_resolution: usize,
-    /// Integer image downscale factor.
-    #[arg(long, default_value_t = 1)]
-    pub downscale: usize,
+    /// Image downscale: `auto` (as `train`) or an integer factor.
+    #[arg(long, default_value_t = Downscale::Auto)]
+    pub downscale: Downscale,
     /// Override the field's learning rate (default: the preset's).
     #[arg(long)]
     pub lr_field: Option<f32>,
@@ -183,7 +183,7 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
     let mut points: Vec<CurvePoint> = Vec::new();
     let mut summary = Vec::new();
     for scene_path in &scenes {
-        let scene = crate::scene::load(scene_path, &ReadOptions { downscale: args.downscale.max(1), ..Default::default() })?;
+        let scene = crate::scene::load(scene_path, &ReadOptions { downscale: args.downscale, ..Default::default() })?;
         let gt_path = ["gt/mesh.obj", "gt/mesh.ply"].iter().map(|r| scene_path.join(r)).find(|p| p.is_file());
         let Some(gt_path) = gt_path else {
             anyhow::bail!("{}: no ground-truth mesh (gt/mesh.obj or gt/mesh.ply) to measure against", scene_path.display());
@@ -202,7 +202,7 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
         let t = Instant::now();
         let adapters: Vec<ViewAdapter> = views.iter().map(|v| ViewAdapter::new(v)).collect();
         let mv: Vec<&dyn MaskView> = adapters.iter().map(|a| a as &dyn MaskView).collect();
-        let base_cfg = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Hull, &views, held.len(), args.downscale);
+        let base_cfg = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Hull, &views, held.len(), scene.downscale);
         let hres = base_cfg.sizes.hull_resolution;
         let grid = smooth(signed_distance(&carve(&mv, hres, 1.0, 0.5, (views.len() / 2).max(1)), hres, 1.0));
         let hull_secs = t.elapsed().as_secs_f64();
@@ -227,7 +227,7 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
         }
 
         for (name, &(preset, mode, init)) in variants.iter().zip(&parsed) {
-            let mut cfg = Stage1Config::for_scene(preset, mode, init, &views, held.len(), args.downscale);
+            let mut cfg = Stage1Config::for_scene(preset, mode, init, &views, held.len(), scene.downscale);
             cfg.iterations = args.max_iterations.min(cfg.iterations.max(1));
             if let Some(lr) = args.lr_field {
                 cfg.lr_field = lr;

@@ -21,7 +21,7 @@ use crate::export::{AssetArgs, ExportConfig, ExportReport};
 use crate::mesh::field::{Aabb, MaterialField, MaterialSamples, SdfField as MeshSdf, SdfSamples};
 use crate::mesh::MeshConfig;
 use crate::render::{trace, Rays, TraceConfig, TraceMode};
-use crate::scene::{ReadOptions, Scene, Split, View};
+use crate::scene::{Downscale, ReadOptions, Scene, Split, View};
 use crate::util::DataError;
 
 /// Which stage to train.
@@ -56,9 +56,11 @@ pub struct TrainOptions {
     /// Write a checkpoint every N iterations (default: the preset's).
     #[arg(long)]
     pub checkpoint_every: Option<u64>,
-    /// Integer image downscale factor.
-    #[arg(long, default_value_t = 1)]
-    pub downscale: usize,
+    /// Image downscale: `auto` (full size unless the photos are larger than the model resolves:
+    /// longest side over 1536 pixels or over 67 megapixels in all, `scene::auto_downscale`) or an
+    /// integer factor.
+    #[arg(long, default_value_t = Downscale::Auto)]
+    pub downscale: Downscale,
     /// Train on every view, even one whose silhouette contradicts the others (a wrong pose or
     /// mask); by default such a view is left out and named.
     #[arg(long)]
@@ -321,21 +323,27 @@ pub fn train_stage1(
 ) -> anyhow::Result<Stage1Run> {
     let t_total = Instant::now();
     crate::export::check_writable(run_dir)?;
-    if opts.downscale == 0 {
-        anyhow::bail!("--downscale must be >= 1");
-    }
     // A resumed run reads the scene as its first run did (its downscale, the views it left out),
     // whatever this command's flags say: other views would not be the run's.
     let resuming = resume && run_dir.join(CHECKPOINT).is_file();
     let loaded = if resuming { Some(Trainer::load(run_dir, None)?) } else { None };
     let (downscale, keep_all_views) = match &loaded {
-        Some((t, _)) => (t.cfg.downscale, t.cfg.keep_all_views),
+        Some((t, _)) => (Downscale::By(t.cfg.downscale.max(1)), t.cfg.keep_all_views),
         None => (opts.downscale, opts.keep_all_views),
     };
-    if loaded.is_some() && (downscale, keep_all_views) != (opts.downscale, opts.keep_all_views) {
+    // `auto` on a resumed run is whatever the run resolved it to: only a different factor given
+    // by hand is worth a note.
+    let asked = match opts.downscale {
+        Downscale::Auto => downscale,
+        given => given,
+    };
+    if loaded.is_some() && (downscale, keep_all_views) != (asked, opts.keep_all_views) {
         ctx.say(format!("resuming as the run started: --downscale {downscale}{}", if keep_all_views { " --keep-all-views" } else { "" }));
     }
     let scene = crate::scene::load(scene_path, &ReadOptions { downscale, keep_all_views })?;
+    if let Some(note) = &scene.downscale_note {
+        ctx.say(note.clone());
+    }
     let (views, held) = train_views(&scene);
     if views.is_empty() {
         return Err(DataError::new(scene_path, "the scene has no views").into());
@@ -377,7 +385,7 @@ pub fn train_stage1(
         if resume {
             ctx.say(format!("no checkpoint in {}: starting a new run", run_dir.display()));
         }
-        let mut cfg = Stage1Config::for_scene(preset, opts.tracing, opts.init, &views, held.len(), opts.downscale);
+        let mut cfg = Stage1Config::for_scene(preset, opts.tracing, opts.init, &views, held.len(), scene.downscale);
         cfg.seed = opts.seed;
         cfg.keep_all_views = opts.keep_all_views;
         if let Some(n) = opts.iterations {
@@ -895,7 +903,7 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
     };
     let seconds_export = t.elapsed().as_secs_f64();
     // Read as the run was (a resumed bake keeps the flags it started with): its views, its frame.
-    let scene = crate::scene::load(&args.scene, &ReadOptions { downscale: run.trainer.cfg.downscale.max(1), keep_all_views: run.trainer.cfg.keep_all_views })?;
+    let scene = crate::scene::load(&args.scene, &ReadOptions { downscale: Downscale::By(run.trainer.cfg.downscale.max(1)), keep_all_views: run.trainer.cfg.keep_all_views })?;
     let gt = super::preview::ground_truth_metrics(
         &args.scene,
         scene.normalisation.center,

@@ -20,7 +20,7 @@ use crate::context::Context;
 use crate::export::{AssetArgs, ExportConfig, ExportReport};
 use crate::mesh::field::{MaterialField, MaterialSamples};
 use crate::render::{trace, Rays, TraceConfig};
-use crate::scene::{Camera, Format, ReadOptions, View};
+use crate::scene::{Camera, Downscale, Format, ReadOptions, View};
 use crate::sg::env::LatlongConvention;
 use crate::sg::shade::Sg;
 use crate::util::DataError;
@@ -199,7 +199,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     crate::export::check_writable(run_dir)?;
     let s1 = load_stage1(run_dir, None)?;
     let downscale = s1.trainer.cfg.downscale.max(1);
-    let scene = crate::scene::load(scene_path, &ReadOptions { downscale, keep_all_views: s1.trainer.cfg.keep_all_views })?;
+    let scene = crate::scene::load(scene_path, &ReadOptions { downscale: Downscale::By(downscale), keep_all_views: s1.trainer.cfg.keep_all_views })?;
     let (views, held) = train_views(&scene);
     let key = scene_key(&scene, &views);
     if key != s1.run_scene.key {

@@ -387,7 +387,10 @@ pub fn run_preview(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
 
     // 1. Scene.
     let t = Instant::now();
-    let scene = crate::scene::load(&args.scene, &ReadOptions { downscale: args.train.downscale.max(1), keep_all_views: args.train.keep_all_views })?;
+    let scene = crate::scene::load(&args.scene, &ReadOptions { downscale: args.train.downscale, keep_all_views: args.train.keep_all_views })?;
+    if let Some(note) = &scene.downscale_note {
+        ctx.say(note.clone());
+    }
     let mut views: Vec<&View> = scene.views_in(Split::Train).collect();
     if views.is_empty() {
         views = scene.views.iter().collect();

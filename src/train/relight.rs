@@ -25,7 +25,7 @@ use crate::backend::{Backend, BackendError};
 use crate::context::Context;
 use crate::render::{trace, Rays, SdfBatch, TraceConfig};
 use crate::scene::Camera;
-use crate::scene::{ReadOptions, Split, View};
+use crate::scene::{Downscale, ReadOptions, Split, View};
 use crate::sg::env::{read_latlong_exr, write_latlong_exr, LatlongConvention};
 use crate::sg::fit::{fit_sgs, FitConfig, FitTarget};
 use crate::sg::shade::Sg;
@@ -244,7 +244,7 @@ pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
     }
     let scene_path = args.cameras.clone().unwrap_or_else(|| s1.run_scene.scene.clone());
     // The views the run left out are left out of the normalisation here too (the frame must be the run's).
-    let scene = crate::scene::load(&scene_path, &ReadOptions { downscale: 1, keep_all_views: s1.trainer.cfg.keep_all_views })?;
+    let scene = crate::scene::load(&scene_path, &ReadOptions { downscale: Downscale::By(1), keep_all_views: s1.trainer.cfg.keep_all_views })?;
     let mut views: Vec<&View> = scene.views_in(Split::Test).collect();
     // A test camera the silhouette check left out of training is still one the caller asked for.
     let excluded: Vec<&View> = scene.excluded.iter().filter(|v| v.split == Split::Test).collect();
