@@ -19,7 +19,8 @@ struct AdamParams {
     bc2: f32,
     n_threads: u32,
     partial_offset: u32,
-    _pad0: u32,
+    // 1: an entry whose gradient is exactly 0 is left untouched (AdamConfig::skip_zero_gradients).
+    skip_zero: u32,
 };
 
 @group(0) @binding(0) var<uniform> A: AdamParams;
@@ -75,6 +76,7 @@ fn grad_stats(
 fn adam_update(@builtin(global_invocation_id) gid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>) {
     let i = linear_index(gid, nwg, 256u);
     if (i >= A.n) { return; }
+    if (A.skip_zero != 0u && grads[i] == 0.0) { return; }
     let g = grads[i] * A.grad_scale;
     let m = A.beta1 * m1[i] + (1.0 - A.beta1) * g;
     let v = A.beta2 * m2[i] + (1.0 - A.beta2) * g * g;

@@ -3,7 +3,7 @@
 //! and the NaN/Inf guard (a non-finite gradient never reaches the parameters).
 
 use pii_bake::backend::Backend;
-use pii_bake::nn::adam::{AdamConfig, AdamItem, AdamState, LrSchedule};
+use pii_bake::nn::adam::{adam_update_host, host_grad_norm, AdamConfig, AdamItem, AdamState, LrSchedule};
 use pii_bake::testing::{assert_close, Tolerance};
 use rand::Rng;
 
@@ -41,6 +41,9 @@ impl Reference {
         self.t += 1;
         let (b1, b2) = (cfg.beta1 as f64, cfg.beta2 as f64);
         for i in 0..self.p.len() {
+            if cfg.skip_zero_gradients && g[i] == 0.0 {
+                continue;
+            }
             let gi = g[i] as f64 * s;
             self.m[i] = b1 * self.m[i] + (1.0 - b1) * gi;
             self.v[i] = b2 * self.v[i] + (1.0 - b2) * gi * gi;
@@ -100,6 +103,7 @@ fn matches_reference_over_steps_with_clipping_weight_decay_and_schedule() {
         eps: 1e-6,
         weight_decay: 0.01,
         grad_clip_norm: Some(5.0),
+        skip_zero_gradients: false,
     };
     let sched = LrSchedule::Exponential {
         decay_rate: 0.5,
@@ -335,4 +339,67 @@ fn group_step_uses_the_global_norm_and_skips_as_a_whole() {
         assert_eq!(b.to_vec(&tb).unwrap(), before_b);
         assert_eq!((sa.step, sb.step), (2, 2));
     }
+}
+
+/// `skip_zero_gradients` (the hash grids' sparse update): an entry whose gradient is exactly 0
+/// keeps its parameter and both moments (no decay, no weight decay), the others follow the
+/// reference, on both backends; the host path the trainers take (`host_grad_norm` +
+/// `adam_update_host`) gives the same bits as `adam_step` on the cpu backend.
+#[test]
+fn sparse_steps_leave_zero_gradient_entries_untouched() {
+    let n = 3000;
+    let cfg = AdamConfig { lr: 0.05, beta1: 0.8, beta2: 0.95, eps: 1e-6, weight_decay: 0.01, grad_clip_norm: None, skip_zero_gradients: true };
+    let p0 = uniform(n, -1.0, 1.0, 3);
+    // Entry i is reached on step s when (i + s) % 4 == 0 (a quarter per step, each a different
+    // quarter), except the last 100, which no step reaches.
+    let grads: Vec<Vec<f32>> = (0..4)
+        .map(|s| uniform(n, -1.0, 1.0, 20 + s as u64).iter().enumerate().map(|(i, g)| if (i + s) % 4 == 0 && i < n - 100 { *g } else { 0.0 }).collect())
+        .collect();
+    let mut reference = Reference { p: p0.iter().map(|&x| x as f64).collect(), m: vec![0.0; n], v: vec![0.0; n], t: 0 };
+    for g in &grads {
+        reference.step(&cfg, g, cfg.lr as f64);
+    }
+    for b in backends() {
+        let mut p = b.upload(&p0);
+        let mut st = AdamState::new(&b, n);
+        for g in &grads {
+            assert!(b.adam_step(&cfg, &mut st, &mut p, &b.upload(g), cfg.lr).unwrap().applied);
+        }
+        let (p, m, v) = (b.to_vec(&p).unwrap(), b.to_vec(&st.m).unwrap(), b.to_vec(&st.v).unwrap());
+        assert_close(&format!("{} params", b.name()), &p, &reference.p, Tolerance::new(1e-5, 1e-6));
+        assert_close(&format!("{} m", b.name()), &m, &reference.m, Tolerance::new(1e-5, 1e-6));
+        assert_close(&format!("{} v", b.name()), &v, &reference.v, Tolerance::new(1e-5, 1e-9));
+        for i in n - 100..n {
+            assert!(p[i] == p0[i] && m[i] == 0.0 && v[i] == 0.0, "{}: untouched entry {i} moved", b.name());
+        }
+        // An entry reached once, on step 0, keeps its moments from then on (no decay).
+        let i = 4;
+        assert!(m[i] != 0.0 && (m[i] as f64 - 0.2 * grads[0][i] as f64).abs() < 1e-6, "{}: m {}", b.name(), m[i]);
+    }
+    // Without the flag the zero-gradient entries decay (weight decay moves every parameter).
+    let dense = AdamConfig { skip_zero_gradients: false, ..cfg.clone() };
+    let cpu = Backend::cpu();
+    let mut p = cpu.upload(&p0);
+    let mut st = AdamState::new(&cpu, n);
+    cpu.adam_step(&dense, &mut st, &mut p, &cpu.upload(&grads[0]), dense.lr).unwrap();
+    assert!(cpu.to_vec(&p).unwrap()[n - 1] != p0[n - 1]);
+    // The trainers' host path: the same bits as adam_step, and None for a non-finite gradient.
+    let mut a = cpu.upload(&p0);
+    let mut sa = AdamState::new(&cpu, n);
+    let mut h = p0.clone();
+    let mut sh = AdamState::new(&cpu, n);
+    for g in &grads {
+        cpu.adam_step(&cfg, &mut sa, &mut a, &cpu.upload(g), cfg.lr).unwrap();
+        let norm = host_grad_norm(&[g]).unwrap();
+        adam_update_host(&cfg, &mut sh, &mut h, g, cfg.lr, norm).unwrap();
+    }
+    assert!(pii_bake::util::same_bits(&cpu.to_vec(&a).unwrap(), &h));
+    assert_eq!(sh.step, 4);
+    let mut bad = grads[0].clone();
+    bad[7] = f32::NAN;
+    assert_eq!(host_grad_norm(&[&grads[1], &bad]), None);
+    bad[7] = f32::INFINITY;
+    assert_eq!(host_grad_norm(&[&bad]), None);
+    let want = grads[1].iter().chain(&grads[2]).map(|&x| (x as f64).powi(2)).sum::<f64>().sqrt();
+    assert!((host_grad_norm(&[&grads[1], &grads[2]]).unwrap() - want).abs() < 1e-9 * want);
 }

@@ -11,6 +11,11 @@
 //! ```
 //! The weight decay is decoupled (Loshchilov & Hutter, `torch.optim.AdamW`), applied to the
 //! parameter before the update (`p` on the right is the old value).
+//!
+//! With `skip_zero_gradients` an entry whose gradient is exactly 0 is left as it is (parameter and
+//! both moments), as Instant-NGP does for its hash tables: a step touches a small share of a hash
+//! grid's entries, and the untouched ones then cost a read of their gradient instead of a full
+//! update (their moments do not decay while no ray reaches them).
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -32,6 +37,9 @@ pub struct AdamConfig {
     pub weight_decay: f32,
     /// Clip the gradient's global L2 norm to this value (None = no clipping).
     pub grad_clip_norm: Option<f32>,
+    /// Leave entries whose gradient is exactly 0 untouched (see the module docs).
+    #[serde(default)]
+    pub skip_zero_gradients: bool,
 }
 
 impl Default for AdamConfig {
@@ -43,6 +51,7 @@ impl Default for AdamConfig {
             eps: 1e-8,
             weight_decay: 0.0,
             grad_clip_norm: None,
+            skip_zero_gradients: false,
         }
     }
 }
@@ -202,6 +211,9 @@ fn step_consts(cfg: &AdamConfig, lr: f32, norm: f64, t: u64) -> StepConsts {
 /// The element-wise update (shared by the cpu twin and documented for the WGSL one).
 #[inline]
 fn update(cfg: &AdamConfig, k: &StepConsts, p: &mut f32, g: f32, m: &mut f32, v: &mut f32) {
+    if cfg.skip_zero_gradients && g == 0.0 {
+        return;
+    }
     let g = g * k.scale;
     *m = cfg.beta1 * *m + (1.0 - cfg.beta1) * g;
     *v = cfg.beta2 * *v + (1.0 - cfg.beta2) * g * g;
@@ -227,7 +239,8 @@ pub struct AdamParams {
     pub n_threads: u32,
     /// First (sum, count) pair this statistics launch writes in the shared partials buffer.
     pub partial_offset: u32,
-    pub _pad: u32,
+    /// 1: leave entries with a zero gradient untouched (`AdamConfig::skip_zero_gradients`).
+    pub skip_zero: u32,
 }
 const _: () = assert!(std::mem::size_of::<AdamParams>() == 48);
 
@@ -364,24 +377,14 @@ impl Backend {
         match self {
             Backend::Cpu(_) => {
                 for it in items.iter_mut() {
-                    let k = step_consts(cfg, lr, norm, it.state.step + 1);
-                    scale = k.scale;
-                    let g = it.grads.host()?;
-                    let AdamState { m, v, .. } = &mut *it.state;
-                    let (m, v) = (m.host_mut()?, v.host_mut()?);
-                    const CH: usize = 4096;
-                    it.params
-                        .host_mut()?
-                        .par_chunks_mut(CH)
-                        .zip(g.par_chunks(CH))
-                        .zip(m.par_chunks_mut(CH))
-                        .zip(v.par_chunks_mut(CH))
-                        .for_each(|(((p, g), m), v)| {
-                            for i in 0..p.len() {
-                                update(cfg, &k, &mut p[i], g[i], &mut m[i], &mut v[i]);
-                            }
-                        });
-                    it.state.step += 1;
+                    scale = adam_update_host(
+                        cfg,
+                        it.state,
+                        it.params.host_mut()?,
+                        it.grads.host()?,
+                        lr,
+                        norm,
+                    )?;
                 }
             }
             Backend::Gpu(g) => {
@@ -416,7 +419,7 @@ impl Backend {
                         bc2: k.bc2,
                         n_threads: 0,
                         partial_offset: 0,
-                        _pad: 0,
+                        skip_zero: cfg.skip_zero_gradients as u32,
                     };
                     let binds = [
                         it.grads.device()?.into(),
@@ -446,6 +449,55 @@ impl Backend {
             lr,
         })
     }
+}
+
+/// The cpu update of one tensor whose gradient the caller has checked (all finite: see
+/// [`host_grad_norm`]), with `norm` the norm that clipping reads (the whole model's, or unused
+/// without clipping): the element-wise step of [`Backend::adam_step_group`] without its own pass
+/// over the gradient. Returns the clip scale.
+pub fn adam_update_host(
+    cfg: &AdamConfig,
+    state: &mut AdamState,
+    params: &mut [f32],
+    grads: &[f32],
+    lr: f32,
+    norm: f64,
+) -> Result<f32, BackendError> {
+    if grads.len() != params.len() || state.m.len() != params.len() || state.v.len() != params.len() {
+        return Err(BackendError::Shape(format!(
+            "adam: params {}, grads {}, m {}, v {} values (must be equal)",
+            params.len(),
+            grads.len(),
+            state.m.len(),
+            state.v.len()
+        )));
+    }
+    let k = step_consts(cfg, lr, norm, state.step + 1);
+    let AdamState { m, v, .. } = &mut *state;
+    let (m, v) = (m.host_mut()?, v.host_mut()?);
+    const CH: usize = 4096;
+    params
+        .par_chunks_mut(CH)
+        .zip(grads.par_chunks(CH))
+        .zip(m.par_chunks_mut(CH))
+        .zip(v.par_chunks_mut(CH))
+        .for_each(|(((p, g), m), v)| {
+            for i in 0..p.len() {
+                update(cfg, &k, &mut p[i], g[i], &mut m[i], &mut v[i]);
+            }
+        });
+    state.step += 1;
+    Ok(k.scale)
+}
+
+/// The global L2 norm of host gradients, or None when any value is non-finite (the step must
+/// be skipped). One parallel pass, summed in fixed blocks: the same bits on any thread count.
+pub fn host_grad_norm(grads: &[&[f32]]) -> Option<f64> {
+    let (sumsq, non_finite) = grads.iter().fold((0.0f64, 0u64), |a, g| {
+        let (s, n) = grad_stats_cpu(g);
+        (a.0 + s, a.1 + n)
+    });
+    (non_finite == 0 && sumsq.is_finite()).then(|| sumsq.sqrt())
 }
 
 /// Sum of squares (f64) and the number of non-finite values.
