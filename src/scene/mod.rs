@@ -431,7 +431,7 @@ pub fn load(path: &Path, opts: &ReadOptions) -> Result<Scene, DataError> {
         let side = sizes.iter().map(|&(w, h)| w.max(h)).max().unwrap_or(0);
         let pixels: usize = sizes.iter().map(|&(w, h)| w * h).sum();
         format!(
-            "photos read at 1/{downscale} size (--downscale auto): their longest side is {side} pixels and they hold {:.0} megapixels in all, more than the model resolves ({AUTO_MAX_SIDE} pixels a side, {:.0} megapixels in all); `--downscale 1` reads them at full size",
+            "photos read at 1/{downscale} size (--downscale auto): their longest side is {side} pixels and they hold {:.0} megapixels in all, beyond what training uses ({AUTO_MAX_SIDE} pixels a side, {:.0} megapixels in all); `--downscale 1` reads them at full size",
             pixels as f64 / 1e6,
             AUTO_MAX_PIXELS as f64 / 1e6
         )
