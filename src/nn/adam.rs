@@ -316,12 +316,11 @@ impl Backend {
         // Gradient statistics over the group: squared norm (summed in f64) and non-finite count.
         let (sumsq, non_finite) = match self {
             Backend::Cpu(_) => {
-                let mut acc = (0.0f64, 0u64);
-                for it in items.iter() {
-                    let (s, nf) = grad_stats_cpu(it.grads.host()?);
-                    acc = (acc.0 + s, acc.1 + nf);
-                }
-                acc
+                let grads = items
+                    .iter()
+                    .map(|it| it.grads.host())
+                    .collect::<Result<Vec<_>, _>>()?;
+                grad_stats_host(&grads)
             }
             Backend::Gpu(g) => {
                 let groups: Vec<usize> = items
@@ -493,11 +492,16 @@ pub fn adam_update_host(
 /// The global L2 norm of host gradients, or None when any value is non-finite (the step must
 /// be skipped). One parallel pass, summed in fixed blocks: the same bits on any thread count.
 pub fn host_grad_norm(grads: &[&[f32]]) -> Option<f64> {
-    let (sumsq, non_finite) = grads.iter().fold((0.0f64, 0u64), |a, g| {
+    let (sumsq, non_finite) = grad_stats_host(grads);
+    (non_finite == 0 && sumsq.is_finite()).then(|| sumsq.sqrt())
+}
+
+/// Sum of squares (f64) and non-finite count over several host tensors, in tensor order.
+fn grad_stats_host(grads: &[&[f32]]) -> (f64, u64) {
+    grads.iter().fold((0.0f64, 0u64), |a, g| {
         let (s, n) = grad_stats_cpu(g);
         (a.0 + s, a.1 + n)
-    });
-    (non_finite == 0 && sumsq.is_finite()).then(|| sumsq.sqrt())
+    })
 }
 
 /// Sum of squares (f64) and the number of non-finite values.

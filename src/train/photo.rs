@@ -23,13 +23,21 @@ pub trait PhotoView: Sync {
     /// The 3×3 pixel patch around `px` (None if any pixel is off the image or the mask). A
     /// provided method, so its nine lookups are static calls into the implementation.
     fn patch(&self, px: [f32; 2]) -> Option<[[f32; 3]; 9]> {
-        let mut out = [[0.0; 3]; 9];
-        for (k, o) in out.iter_mut().enumerate() {
-            let (dx, dy) = ((k % 3) as f32 - 1.0, (k / 3) as f32 - 1.0);
-            *o = self.colour_at([px[0] + dx, px[1] + dy])?;
-        }
-        Some(out)
+        patch_of(px, |q| self.colour_at(q))
     }
+}
+
+/// The 3×3 patch around `px` from a pixel lookup, row by row (None if any lookup is): the one
+/// definition of a patch's pixels, for [`PhotoView::patch`] and implementations that look pixels
+/// up faster than through `colour_at`.
+#[inline(always)]
+pub(crate) fn patch_of(px: [f32; 2], lookup: impl Fn([f32; 2]) -> Option<[f32; 3]>) -> Option<[[f32; 3]; 9]> {
+    let mut out = [[0.0; 3]; 9];
+    for (k, o) in out.iter_mut().enumerate() {
+        let (dx, dy) = ((k % 3) as f32 - 1.0, (k / 3) as f32 - 1.0);
+        *o = lookup([px[0] + dx, px[1] + dy])?;
+    }
+    Some(out)
 }
 
 fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {

@@ -115,12 +115,7 @@ impl PhotoView for ViewAdapter<'_> {
     /// The nine lookups of [`PhotoView::patch`] with the image, mask and sizes gathered once.
     fn patch(&self, px: [f32; 2]) -> Option<[[f32; 3]; 9]> {
         let pixels = Pixels::of(self.view);
-        let mut out = [[0.0; 3]; 9];
-        for (k, o) in out.iter_mut().enumerate() {
-            let (dx, dy) = ((k % 3) as f32 - 1.0, (k / 3) as f32 - 1.0);
-            *o = pixels.colour_at([px[0] + dx, px[1] + dy])?;
-        }
-        Some(out)
+        super::photo::patch_of(px, |q| pixels.colour_at(q))
     }
 }
 
