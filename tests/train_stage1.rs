@@ -213,6 +213,64 @@ fn wgpu_matches_cpu_on_tracing_and_one_steps_gradients() {
     pii_bake::testing::assert_close("radiance gradient wgpu vs cpu", &gg.d_radiance, &gc.d_radiance, tol);
 }
 
+/// Tracing on the device (a hash-grid field on wgpu: `render::device`) against the host loop on
+/// the same field and backend: the same hits, depths and min-SDF points, for IDR's sampler and
+/// the local one, and a wait every few steps instead of one per step.
+#[test]
+fn device_tracing_matches_the_host_loop_with_a_few_waits() {
+    let gpu = lavapipe();
+    let mut cfg = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Sphere, &[], 0, 1);
+    cfg.field.encoding = FieldEncoding::HashGrid { levels: 4, features_per_level: 2, log2_table_size: 10, base_resolution: 4, growth: 2.0 };
+    cfg.field.widths = vec![16];
+    let mut model = Model::new(&cfg).unwrap();
+    // A lumpy sphere: every parameter nudged, so rays overshoot, graze and leave.
+    let mut rng = pii_bake::util::rng(9);
+    for p in model.sdf_params.iter_mut() {
+        *p += 0.05 * rand::Rng::random_range(&mut rng, -1.0f32..1.0);
+    }
+    let mut rays = Rays::default();
+    for j in 0..16 {
+        for i in 0..16 {
+            let (x, y) = (-0.8 + 1.6 * i as f32 / 15.0, -0.8 + 1.6 * j as f32 / 15.0);
+            let d = [0.1 * x, 0.05, -1.0f32];
+            let n = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+            rays.origins.push([x, y, 3.0]);
+            rays.dirs.push(d.map(|v| v / n));
+        }
+    }
+    let waits = |b: &Backend| b.gpu().unwrap().counters().waits;
+    let classic = pii_bake::render::TraceConfig::new(TraceMode::Classic);
+    for tc in [classic, cfg.trace.clone()] {
+        let host = |p: &[f32]| model.sdf(&gpu, p);
+        let dev = model.sdf_batch(&gpu).unwrap();
+        assert!(pii_bake::render::SdfBatch::device(&dev).is_some(), "a hash-grid field on wgpu traces on the device");
+        let w0 = waits(&gpu);
+        let a = trace(&host, &rays, &tc).unwrap();
+        let w1 = waits(&gpu);
+        let b = trace(&dev, &rays, &tc).unwrap();
+        let w2 = waits(&gpu);
+        let sampled = a.sampled.iter().filter(|s| **s).count();
+        println!("{:?}: {} hits, {sampled} sampled, evaluations host {} device {}", tc.mode, a.hits(), a.evaluations, b.evaluations);
+        assert!(a.hits() > 40 && sampled > 10, "{:?}: {} hits, {sampled} through the sampler", tc.mode, a.hits());
+        assert_eq!(a.sampled, b.sampled, "{:?}: the same rays reach the sampler", tc.mode);
+        let mut agree = 0;
+        for i in 0..rays.len() {
+            if a.hit[i] == b.hit[i] {
+                agree += 1;
+                // Bit-identical on lavapipe; a driver fusing `o + t·d` into an fma may round apart.
+                assert!((a.t[i] - b.t[i]).abs() < 1e-5, "{:?} ray {i} (hit {}): t host {} vs device {}", tc.mode, a.hit[i], a.t[i], b.t[i]);
+                assert!((a.sdf[i] - b.sdf[i]).abs() < 1e-5 || a.sdf[i] == b.sdf[i], "ray {i}: value host {} vs device {}", a.sdf[i], b.sdf[i]);
+            }
+        }
+        assert!(agree >= rays.len() - 1, "{:?}: hit masks differ on {} rays", tc.mode, rays.len() - agree);
+        // Host: one wait per sphere-tracing step; device: one per 8 steps, the sampler, the
+        // secant's looks and the Newton step.
+        let (host_waits, dev_waits) = (w1 - w0, w2 - w1);
+        let bound = (tc.sphere_steps + 1).div_ceil(8) + 1 + tc.secant_steps.div_ceil(8) + 1;
+        assert!(host_waits >= (tc.sphere_steps / 2) as f64 && dev_waits <= bound as f64, "{:?}: waits host {host_waits}, device {dev_waits}", tc.mode);
+    }
+}
+
 #[test]
 fn a_few_steps_learn_a_silhouette() {
     // IDR's sampler (the paper preset) and the local one (the fast preset's): the mask loss

@@ -462,10 +462,20 @@ impl SdfField {
         };
         let n = x.len() / 3;
         let xt = backend.upload(x);
-        let grid = backend.encoding_forward(&l.encoding, &self.on_device(backend, pe), &xt, n)?;
-        let out = g.zeros_f32("field.rows", n * (l.raw + l.enc));
-        row_kernel(g, "assemble", &l, n, xt.device()?, grid.device()?, &out, n * (l.raw + l.enc))?;
-        Ok((Some(xt), Tensor::Device(out)))
+        let rows = device_rows(backend, g, &l, &self.on_device(backend, pe), &xt, n)?;
+        Ok((Some(xt), rows))
+    }
+
+    /// The field with `params` on the device, for evaluations whose points and outputs stay
+    /// there (the tracer's loops, `render::device`): `None` where the encoding runs on the host
+    /// (the paper preset's frequency encoding, or the cpu backend).
+    pub fn on_device_eval<'a>(&'a self, backend: &'a Backend, params: &[f32]) -> Result<Option<DeviceField<'a>>, BackendError> {
+        let (Some(g), Some(layout)) = (backend.gpu(), self.encoder.device_layout()) else {
+            return Ok(None);
+        };
+        let (pe, pm) = self.split(params)?;
+        let (pe, pm) = (self.on_device(backend, pe), self.on_device(backend, pm));
+        Ok(Some(DeviceField { field: self, backend, gpu: g.clone(), layout, pe, pm }))
     }
 
     /// SDF values `[n]`.
@@ -598,6 +608,43 @@ impl SdfField {
         };
         d_params.extend(backend.to_vec(&grads.d_params)?);
         Ok((value, d_params))
+    }
+}
+
+/// The MLP input rows `[n, raw + enc]` of the device points `xt` `[n, 3]`: the hash grid's WGSL
+/// encoding with the encoding parameters `pe`, assembled on the device.
+fn device_rows(backend: &Backend, g: &GpuContext, l: &DeviceLayout, pe: &Tensor, xt: &Tensor, n: usize) -> Result<Tensor, BackendError> {
+    let grid = backend.encoding_forward(&l.encoding, pe, xt, n)?;
+    let out = g.zeros_f32("field.rows", n * (l.raw + l.enc));
+    row_kernel(g, "assemble", l, n, xt.device()?, grid.device()?, &out, n * (l.raw + l.enc))?;
+    Ok(Tensor::Device(out))
+}
+
+/// An SDF field whose parameters are on the device ([`SdfField::on_device_eval`]).
+pub struct DeviceField<'a> {
+    field: &'a SdfField,
+    backend: &'a Backend,
+    gpu: std::sync::Arc<GpuContext>,
+    layout: DeviceLayout,
+    pe: Tensor,
+    pm: Tensor,
+}
+
+impl DeviceField<'_> {
+    /// Raw outputs `[n, 1 + feature_dim]` at the device points `x` `[n, 3]`, left on the device
+    /// (launches only, no wait).
+    pub fn eval(&self, x: &GpuBuffer, n: usize) -> Result<GpuBuffer, BackendError> {
+        let rows = device_rows(self.backend, &self.gpu, &self.layout, &self.pe, &Tensor::Device(x.clone()), n)?;
+        let fwd = self.backend.mlp_forward(&self.field.mlp, &self.pm, &rows, false)?;
+        Ok(fwd.output.device()?.clone())
+    }
+
+    pub fn out_dim(&self) -> usize {
+        self.field.mlp.out_dim()
+    }
+
+    pub fn gpu(&self) -> &GpuContext {
+        &self.gpu
     }
 }
 

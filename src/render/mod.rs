@@ -23,6 +23,11 @@
 //!
 //! [`TraceMode::Classic`] is the public code's setting (threshold 5e-5, no Newton step).
 //!
+//! Where the field also evaluates on the device ([`SdfBatch::device`]: the fast preset's
+//! hash-grid SDF on wgpu), steps 2 and 3's secant run there ([`device`], `shaders/trace.wgsl`):
+//! the host looks at the rays every 8 steps instead of waiting for every step's values. Same
+//! logic, same results (bit for bit on lavapipe); the sampler and the Newton step stay here.
+//!
 //! Secondary rays ([`trace_secondary`]): the same sphere-tracing step from `t = start_offset`
 //! for a fixed step count (stage 2 traces from surface points toward each light lobe).
 //!
@@ -34,10 +39,12 @@
 //! [`volume`]: NeuS's volume rendering of the SDF (opacity compositing along samples), which
 //! stage 1 uses at the start of a run to open concavities a first hit cannot see into.
 
+pub mod device;
 pub mod grid;
 pub mod volume;
 
 use crate::backend::BackendError;
+pub use device::DeviceSdf;
 
 /// Tracing variant.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
@@ -184,6 +191,11 @@ impl TraceResult {
 /// A batched SDF: values at `[n, 3]` points (flattened).
 pub trait SdfBatch {
     fn sdf(&self, points: &[f32]) -> Result<Vec<f32>, BackendError>;
+    /// The same field evaluated on the device without a wait, where it can be: [`trace`] then
+    /// runs its loops there ([`device`]).
+    fn device(&self) -> Option<&dyn DeviceSdf> {
+        None
+    }
 }
 
 impl<F: Fn(&[f32]) -> Result<Vec<f32>, BackendError>> SdfBatch for F {
@@ -219,12 +231,12 @@ pub fn trace(f: &dyn SdfBatch, rays: &Rays, cfg: &TraceConfig) -> Result<TraceRe
         evaluations: 0,
     };
     let mut interval = vec![(0.0f32, 0.0f32); n];
-    let mut active: Vec<Marching> = Vec::with_capacity(n);
+    let mut starts: Vec<device::Start> = Vec::with_capacity(n);
     for i in 0..n {
         match sphere_interval(rays.origins[i], rays.dirs[i], cfg.bound) {
             Some((a, b)) => {
                 interval[i] = (a, b);
-                active.push(Marching { ray: i, t: a, last_pos: a, best_f: f32::INFINITY, best_t: a, before_best: a });
+                starts.push(device::Start { ray: i, t: a, lo: a, hi: b });
             }
             None => {
                 // Closest point to the centre: the mask loss pushes the field up there.
@@ -236,15 +248,115 @@ pub fn trace(f: &dyn SdfBatch, rays: &Rays, cfg: &TraceConfig) -> Result<TraceRe
             }
         }
     }
-    let local = cfg.local_samples >= 2;
     // Unfinished rays for the sampler, and the closest point sphere tracing visited on each.
+    let dev = f.device();
+    let unfinished = match dev {
+        Some(d) if !starts.is_empty() => device::sphere_trace(d, rays, &starts, cfg, &mut res, &mut evals)?,
+        _ => sphere_trace_host(f, rays, &starts, &interval, cfg, &mut res, &mut evals)?,
+    };
+
+    // Sampler + secant on unfinished rays.
+    if !unfinished.is_empty() {
+        let mut offsets = Vec::with_capacity(unfinished.len() + 1);
+        offsets.push(0usize);
+        for u in &unfinished {
+            offsets.push(offsets.last().copied().unwrap_or(0) + u.samples);
+        }
+        let mut pts = Vec::with_capacity(offsets[unfinished.len()]);
+        for u in &unfinished {
+            pts.extend((0..u.samples).map(|j| rays.at(u.ray, u.at(j))));
+        }
+        let v = eval_at(f, &pts, &mut evals)?;
+        // Secant brackets: (ray, t_lo, f_lo, t_hi, f_hi).
+        let mut brackets: Vec<(usize, f32, f32, f32, f32)> = Vec::new();
+        for (k, u) in unfinished.iter().enumerate() {
+            let i = u.ray;
+            res.sampled[i] = true;
+            let row = &v[offsets[k]..offsets[k + 1]];
+            let mut found = None;
+            for j in 1..row.len() {
+                if row[j - 1].is_finite() && row[j].is_finite() && row[j - 1] > 0.0 && row[j] <= 0.0 {
+                    found = Some(j);
+                    break;
+                }
+            }
+            match found {
+                Some(j) => brackets.push((i, u.at(j - 1), row[j - 1], u.at(j), row[j])),
+                None => {
+                    let (mut tm, mut vm) = (u.t0, f32::INFINITY);
+                    for (j, &x) in row.iter().enumerate() {
+                        if x.is_finite() && x < vm {
+                            vm = x;
+                            tm = u.at(j);
+                        }
+                    }
+                    if let Some((tb, fb)) = u.visited.filter(|&(_, fb)| fb < vm) {
+                        (tm, vm) = (tb, fb);
+                    }
+                    res.t[i] = tm;
+                    res.points[i] = rays.at(i, tm);
+                    res.sdf[i] = vm;
+                }
+            }
+        }
+        match dev {
+            Some(d) if !brackets.is_empty() => device::secant(d, rays, &brackets, cfg, &mut res, &mut evals)?,
+            _ => secant_host(f, rays, brackets, cfg, &mut res, &mut evals)?,
+        }
+    }
+
+    // Refined: one Newton step along the ray on every hit.
+    if cfg.newton {
+        let hits: Vec<usize> = (0..n).filter(|&i| res.hit[i]).collect();
+        if !hits.is_empty() {
+            let delta = 1e-3f32;
+            let mut pts = Vec::with_capacity(hits.len() * 3);
+            for &i in &hits {
+                let t = res.t[i];
+                pts.push(rays.at(i, t));
+                pts.push(rays.at(i, t + delta));
+                pts.push(rays.at(i, t - delta));
+            }
+            let v = eval_at(f, &pts, &mut evals)?;
+            for (k, &i) in hits.iter().enumerate() {
+                let (f0, fp, fm) = (v[3 * k], v[3 * k + 1], v[3 * k + 2]);
+                let dfdt = (fp - fm) / (2.0 * delta);
+                if !(f0.is_finite() && dfdt.is_finite()) || dfdt > -0.05 {
+                    continue; // grazing or back-facing: keep the traced point
+                }
+                let step = (-f0 / dfdt).clamp(-10.0 * cfg.threshold, 10.0 * cfg.threshold);
+                res.t[i] += step;
+                res.points[i] = rays.at(i, res.t[i]);
+            }
+        }
+    }
+    res.evaluations = evals;
+    Ok(res)
+}
+
+/// Sphere tracing of `starts` on the host, one batched evaluation of the rays still marching
+/// per step: fills `res` for hits and broken values, returns the unfinished rays' segments.
+fn sphere_trace_host(
+    f: &dyn SdfBatch,
+    rays: &Rays,
+    starts: &[device::Start],
+    interval: &[(f32, f32)],
+    cfg: &TraceConfig,
+    res: &mut TraceResult,
+    evals: &mut usize,
+) -> Result<Vec<Segment>, BackendError> {
+    let local = cfg.local_samples >= 2;
+    let mut active: Vec<Marching> = starts
+        .iter()
+        .map(|s| Marching { ray: s.ray, t: s.t, last_pos: s.t, best_f: f32::INFINITY, best_t: s.t, before_best: s.t })
+        .collect();
     let mut unfinished: Vec<Segment> = Vec::new();
     for step in 0..=cfg.sphere_steps {
         if active.is_empty() {
             break;
         }
         let pts: Vec<[f32; 3]> = active.iter().map(|m| rays.at(m.ray, m.t)).collect();
-        let v = eval_at(f, &pts, &mut evals)?;
+        let v = eval_at(f, &pts, evals)?;
         let mut next = Vec::with_capacity(active.len());
         for (k, m) in active.iter().enumerate() {
             let (i, t, fv) = (m.ray, m.t, v[k]);
@@ -295,115 +407,53 @@ pub fn trace(f: &dyn SdfBatch, rays: &Rays, cfg: &TraceConfig) -> Result<TraceRe
         }
         active = next;
     }
+    Ok(unfinished)
+}
 
-    // Sampler + secant on unfinished rays.
-    if !unfinished.is_empty() {
-        let mut offsets = Vec::with_capacity(unfinished.len() + 1);
-        offsets.push(0usize);
-        for u in &unfinished {
-            offsets.push(offsets.last().copied().unwrap_or(0) + u.samples);
+/// The secant refinement of `brackets` `(ray, t_lo, f_lo, t_hi, f_hi)` on the host: a bracket
+/// converges when |f| < threshold/10 at its secant point; one still open after `secant_steps`
+/// steps hits at its last secant point.
+fn secant_host(
+    f: &dyn SdfBatch,
+    rays: &Rays,
+    mut brackets: Vec<(usize, f32, f32, f32, f32)>,
+    cfg: &TraceConfig,
+    res: &mut TraceResult,
+    evals: &mut usize,
+) -> Result<(), BackendError> {
+    for _ in 0..cfg.secant_steps {
+        if brackets.is_empty() {
+            break;
         }
-        let mut pts = Vec::with_capacity(offsets[unfinished.len()]);
-        for u in &unfinished {
-            pts.extend((0..u.samples).map(|j| rays.at(u.ray, u.at(j))));
-        }
-        let v = eval_at(f, &pts, &mut evals)?;
-        // Secant brackets: (ray, t_lo, f_lo, t_hi, f_hi).
-        let mut brackets: Vec<(usize, f32, f32, f32, f32)> = Vec::new();
-        for (k, u) in unfinished.iter().enumerate() {
-            let i = u.ray;
-            res.sampled[i] = true;
-            let row = &v[offsets[k]..offsets[k + 1]];
-            let mut found = None;
-            for j in 1..row.len() {
-                if row[j - 1].is_finite() && row[j].is_finite() && row[j - 1] > 0.0 && row[j] <= 0.0 {
-                    found = Some(j);
-                    break;
-                }
-            }
-            match found {
-                Some(j) => brackets.push((i, u.at(j - 1), row[j - 1], u.at(j), row[j])),
-                None => {
-                    let (mut tm, mut vm) = (u.t0, f32::INFINITY);
-                    for (j, &x) in row.iter().enumerate() {
-                        if x.is_finite() && x < vm {
-                            vm = x;
-                            tm = u.at(j);
-                        }
-                    }
-                    if let Some((tb, fb)) = u.visited.filter(|&(_, fb)| fb < vm) {
-                        (tm, vm) = (tb, fb);
-                    }
-                    res.t[i] = tm;
-                    res.points[i] = rays.at(i, tm);
-                    res.sdf[i] = vm;
-                }
-            }
-        }
-        for _ in 0..cfg.secant_steps {
-            if brackets.is_empty() {
-                break;
-            }
-            let mid: Vec<[f32; 3]> = brackets
-                .iter()
-                .map(|&(i, tl, fl, th, fh)| rays.at(i, secant(tl, fl, th, fh)))
-                .collect();
-            let v = eval_at(f, &mid, &mut evals)?;
-            let mut next = Vec::with_capacity(brackets.len());
-            for (k, &(i, tl, fl, th, fh)) in brackets.iter().enumerate() {
-                let tm = secant(tl, fl, th, fh);
-                let fm = v[k];
-                if !fm.is_finite() || fm.abs() < cfg.threshold * 0.1 {
-                    res.hit[i] = true;
-                    res.t[i] = tm;
-                    res.points[i] = mid[k];
-                    res.sdf[i] = if fm.is_finite() { fm } else { 0.0 };
-                    continue;
-                }
-                if fm > 0.0 {
-                    next.push((i, tm, fm, th, fh));
-                } else {
-                    next.push((i, tl, fl, tm, fm));
-                }
-            }
-            brackets = next;
-        }
-        for &(i, tl, fl, th, fh) in &brackets {
+        let mid: Vec<[f32; 3]> = brackets.iter().map(|&(i, tl, fl, th, fh)| rays.at(i, secant(tl, fl, th, fh))).collect();
+        let v = eval_at(f, &mid, evals)?;
+        let mut next = Vec::with_capacity(brackets.len());
+        for (k, &(i, tl, fl, th, fh)) in brackets.iter().enumerate() {
             let tm = secant(tl, fl, th, fh);
-            res.hit[i] = true;
-            res.t[i] = tm;
-            res.points[i] = rays.at(i, tm);
-            res.sdf[i] = 0.5 * (fl + fh);
-        }
-    }
-
-    // Refined: one Newton step along the ray on every hit.
-    if cfg.newton {
-        let hits: Vec<usize> = (0..n).filter(|&i| res.hit[i]).collect();
-        if !hits.is_empty() {
-            let delta = 1e-3f32;
-            let mut pts = Vec::with_capacity(hits.len() * 3);
-            for &i in &hits {
-                let t = res.t[i];
-                pts.push(rays.at(i, t));
-                pts.push(rays.at(i, t + delta));
-                pts.push(rays.at(i, t - delta));
+            let fm = v[k];
+            if !fm.is_finite() || fm.abs() < cfg.threshold * 0.1 {
+                res.hit[i] = true;
+                res.t[i] = tm;
+                res.points[i] = mid[k];
+                res.sdf[i] = if fm.is_finite() { fm } else { 0.0 };
+                continue;
             }
-            let v = eval_at(f, &pts, &mut evals)?;
-            for (k, &i) in hits.iter().enumerate() {
-                let (f0, fp, fm) = (v[3 * k], v[3 * k + 1], v[3 * k + 2]);
-                let dfdt = (fp - fm) / (2.0 * delta);
-                if !(f0.is_finite() && dfdt.is_finite()) || dfdt > -0.05 {
-                    continue; // grazing or back-facing: keep the traced point
-                }
-                let step = (-f0 / dfdt).clamp(-10.0 * cfg.threshold, 10.0 * cfg.threshold);
-                res.t[i] += step;
-                res.points[i] = rays.at(i, res.t[i]);
+            if fm > 0.0 {
+                next.push((i, tm, fm, th, fh));
+            } else {
+                next.push((i, tl, fl, tm, fm));
             }
         }
+        brackets = next;
     }
-    res.evaluations = evals;
-    Ok(res)
+    for &(i, tl, fl, th, fh) in &brackets {
+        let tm = secant(tl, fl, th, fh);
+        res.hit[i] = true;
+        res.t[i] = tm;
+        res.points[i] = rays.at(i, tm);
+        res.sdf[i] = 0.5 * (fl + fh);
+    }
+    Ok(())
 }
 
 /// A ray being sphere traced: where it is, the last point known outside, and the closest point

@@ -515,12 +515,13 @@ pub fn train_stage1(
     let seconds_train = t_loop.elapsed().as_secs_f64();
     let its = (trainer.step - step0) as f64 / seconds_train.max(1e-9);
 
+    // The training steps' costs, before the evaluation's renders add theirs.
+    let (gpu_per_step, encoding_per_step) = costs.per_step(backend, trainer.step - step0);
     // Held-out views (or, without them, a few training views), rendered at a bounded size.
     let t_eval = Instant::now();
     let eval_views: Vec<&View> = if held.is_empty() { views.iter().step_by((views.len() / 4).max(1)).take(4).copied().collect() } else { held.iter().take(8).copied().collect() };
     let ev = evaluate_views(backend, &trainer.model, &cfg.trace, &eval_views, 128 * 128)?;
     let weak = ev.mask_iou < 0.8 || trainer.skipped * 10 > trainer.step.max(1);
-    let (gpu_per_step, encoding_per_step) = costs.per_step(backend, trainer.step - step0);
     let report = serde_json::json!({
         "stage": "geometry",
         "preset": cfg.preset,
@@ -616,7 +617,7 @@ pub fn render_rays(backend: &Backend, model: &Model, tc: &TraceConfig, rays: &Ra
     for start in (0..rays.len()).step_by(chunk) {
         let end = (start + chunk).min(rays.len());
         let r = Rays { origins: rays.origins[start..end].to_vec(), dirs: rays.dirs[start..end].to_vec() };
-        let f = |p: &[f32]| model.sdf(backend, p);
+        let f = model.sdf_batch(backend)?;
         let tr = trace(&f, &r, tc)?;
         let hits: Vec<usize> = (0..r.len()).filter(|&i| tr.hit[i]).collect();
         let x: Vec<[f32; 3]> = hits.iter().map(|&i| tr.points[i]).collect();

@@ -326,6 +326,8 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     let seconds_train = t_loop.elapsed().as_secs_f64();
     let its = (trainer.step - step0) as f64 / seconds_train.max(1e-9);
 
+    // The training steps' costs, before the evaluation's renders add theirs.
+    let (gpu_per_step, encoding_per_step) = costs.per_step(backend, trainer.step - step0);
     // Held-out views rendered with the learned light and material.
     let t_eval = Instant::now();
     let eval_views: Vec<&View> = if held.is_empty() { views.iter().step_by((views.len() / 3).max(1)).take(3).copied().collect() } else { held.iter().take(4).copied().collect() };
@@ -372,7 +374,6 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
             crate::scene::texture::TEXTURELESS_BELOW
         ));
     }
-    let (gpu_per_step, encoding_per_step) = costs.per_step(backend, trainer.step - step0);
     let report = serde_json::json!({
         "stage": "material",
         "preset": cfg.preset,
@@ -494,7 +495,7 @@ pub fn render_view_lit(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, m
     for start in (0..n).step_by(8192) {
         let end = (start + 8192).min(n);
         let r = Rays { origins: rays.origins[start..end].to_vec(), dirs: rays.dirs[start..end].to_vec() };
-        let f = |p: &[f32]| sdf.sdf(backend, p);
+        let f = sdf.sdf_batch(backend)?;
         let tr = trace(&f, &r, tc)?;
         let idx: Vec<usize> = (0..r.len()).filter(|&i| tr.hit[i]).collect();
         let mut c = SurfaceCache { x: idx.iter().map(|&i| tr.points[i]).collect(), v: idx.iter().map(|&i| r.dirs[i].map(|v| -v)).collect(), ..Default::default() };

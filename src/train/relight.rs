@@ -278,7 +278,7 @@ pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
         let cam = v.camera.supersampled(ss);
         let renders = render_view_lit(&backend, sdf, tc, &s2.model, &cam, 0, &lights)?;
         let img = &renders[0];
-        let fp = Footprint::new(&|p: &[f32]| sdf.sdf(&backend, p), tc, &v.camera, img, ss, EDGE_RAYS)?;
+        let fp = Footprint::new(&sdf.sdf_batch(&backend)?, tc, &v.camera, img, ss, EDGE_RAYS)?;
         edge_pixels += fp.edge_pixels;
         fp.write(&test.join(format!("{}.png", v.name)), |k| img.rgb[k], true)?;
         fp.write(&test.join(format!("{}_albedo.png", v.name)), |k| img.albedo[k], true)?;

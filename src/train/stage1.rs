@@ -43,7 +43,7 @@ use crate::nn::field::{Encoder, FieldEncoding, FieldOutputGrads, FieldOutputs, P
 use crate::nn::mlp::{Activation, Init, Mlp, MlpConfig};
 use crate::nn::params::ParamStore;
 use crate::render::grid::SdfGrid;
-use crate::render::{min_sdf_along, sphere_interval, trace, Rays, TraceConfig, TraceMode};
+use crate::render::{min_sdf_along, sphere_interval, trace, Rays, SdfBatch, TraceConfig, TraceMode};
 use crate::scene::{Camera, View};
 use crate::util::DataError;
 
@@ -690,6 +690,13 @@ impl Model {
         Ok(out)
     }
 
+    /// The SDF as the tracer reads it: [`Model::sdf`]'s host batches and, where the field
+    /// encodes on the device (the fast preset on wgpu), the same field evaluated there, so
+    /// `render::trace` runs its loops on the device.
+    pub fn sdf_batch<'a>(&'a self, backend: &'a Backend) -> Result<ModelSdf<'a>, BackendError> {
+        Ok(ModelSdf { model: self, backend, device: self.field.on_device_eval(backend, &self.sdf_params)? })
+    }
+
     fn radiance_input(&self, x: &[[f32; 3]], dirs: &[[f32; 3]], o: &FieldOutputs, range: std::ops::Range<usize>) -> Vec<f32> {
         let feat = self.features(x, o, range.clone());
         let fd = feat.len() / x.len().max(1);
@@ -761,6 +768,23 @@ impl Model {
     }
 }
 
+/// [`Model::sdf_batch`].
+pub struct ModelSdf<'a> {
+    model: &'a Model,
+    backend: &'a Backend,
+    device: Option<crate::nn::field::DeviceField<'a>>,
+}
+
+impl SdfBatch for ModelSdf<'_> {
+    fn sdf(&self, points: &[f32]) -> Result<Vec<f32>, BackendError> {
+        self.model.sdf(self.backend, points)
+    }
+
+    fn device(&self) -> Option<&dyn crate::render::DeviceSdf> {
+        self.device.as_ref().map(|d| d as &dyn crate::render::DeviceSdf)
+    }
+}
+
 /// Loss parts and figures of one step.
 #[derive(Clone, Debug, Default, Serialize, Deserialize, PartialEq)]
 pub struct StepStats {
@@ -827,7 +851,7 @@ pub fn loss_and_grad(
     jitter: f32,
 ) -> Result<StepGrad, BackendError> {
     let nrays = batch.rays.len();
-    let sdf_fn = |p: &[f32]| model.sdf(backend, p);
+    let sdf_fn = model.sdf_batch(backend)?;
     let tr = trace(&sdf_fn, &batch.rays, trace_cfg)?;
     let mut evals = tr.evaluations;
 

@@ -1637,7 +1637,7 @@ impl SurfaceCache {
         let mut rng = crate::util::rng(seed ^ 0xCAC4E);
         let batch = data.sample(&mut rng, n, 1.0);
         let mut c = SurfaceCache::default();
-        let f = |p: &[f32]| sdf.sdf(backend, p);
+        let f = sdf.sdf_batch(backend)?;
         for start in (0..batch.rays.len()).step_by(8192) {
             let end = (start + 8192).min(batch.rays.len());
             let r = Rays { origins: batch.rays.origins[start..end].to_vec(), dirs: batch.rays.dirs[start..end].to_vec() };
