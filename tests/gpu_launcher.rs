@@ -48,3 +48,23 @@ fn tensors_round_trip_on_both_backends() {
         assert_eq!(b.to_vec(&z).unwrap(), vec![0.0; 5]);
     }
 }
+
+#[test]
+fn several_buffers_read_back_with_one_wait() {
+    let g = gpu();
+    let a: Vec<f32> = (0..1000).map(|i| i as f32 * 0.5).collect();
+    let b = vec![-3.0f32, 7.0];
+    let (ab, bb, empty) = (g.upload_f32("a", &a), g.upload_f32("b", &b), g.upload_f32("empty", &[]));
+    // After a dispatch that writes one of them: the read sees the queue's work.
+    let c = g.upload_f32("c", &[1.0f32, 1.0]);
+    util_kernels::axpy(&g, 2.0, &c, &bb).unwrap();
+    let w0 = g.counters().waits;
+    let out = g.read_many::<f32>(&[&ab, &empty, &bb]).unwrap();
+    assert_eq!(g.counters().waits - w0, 1.0);
+    assert_eq!(out, vec![a.clone(), vec![], vec![-1.0, 9.0]]);
+    // The backend's pair and host tensors pass through.
+    let be = Backend::Gpu(g.clone());
+    let host = pii_bake::backend::Tensor::Host(vec![4.0]);
+    let (x, y) = be.to_vec2(&host, &pii_bake::backend::Tensor::Device(ab)).unwrap();
+    assert_eq!((x, y), (vec![4.0], a));
+}

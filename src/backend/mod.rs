@@ -160,6 +160,27 @@ impl Backend {
         }
     }
 
+    /// [`Backend::to_vec`] of several tensors, with one wait for all of them on wgpu.
+    pub fn to_vecs(&self, ts: &[&Tensor]) -> Result<Vec<Vec<f32>>, BackendError> {
+        let Backend::Gpu(g) = self else {
+            return ts.iter().map(|t| self.to_vec(t)).collect();
+        };
+        let dev: Vec<&gpu::GpuBuffer> = ts.iter().filter_map(|t| t.device().ok()).collect();
+        let mut read = g.read_many::<f32>(&dev)?.into_iter();
+        ts.iter()
+            .map(|t| match t {
+                Tensor::Host(v) => Ok(v.clone()),
+                Tensor::Device(_) => read.next().ok_or_else(|| BackendError::Map("readback count".into())),
+            })
+            .collect()
+    }
+
+    /// [`Backend::to_vecs`] of two tensors.
+    pub fn to_vec2(&self, a: &Tensor, b: &Tensor) -> Result<(Vec<f32>, Vec<f32>), BackendError> {
+        let mut v = self.to_vecs(&[a, b])?.into_iter();
+        Ok((v.next().unwrap_or_default(), v.next().unwrap_or_default()))
+    }
+
     /// Block until all submitted GPU work is done (no-op on cpu). Benchmarks call this.
     pub fn sync(&self) -> Result<(), BackendError> {
         match self {

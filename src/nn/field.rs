@@ -598,7 +598,10 @@ impl SdfField {
                 row_kernel(g, "split", &l, m, d_row, d_row, &d_enc, m * l.enc)?;
                 let grid = self.on_device(backend, pe);
                 let (dp, _) = backend.encoding_backward(&l.encoding, &grid, pts_t, m, &Tensor::Device(d_enc), false)?;
-                backend.to_vec(&dp)?
+                // Both parts of the gradient with one wait.
+                let (mut d, d_mlp) = backend.to_vec2(&dp, &grads.d_params)?;
+                d.extend(d_mlp);
+                return Ok((value, d));
             }
             _ if self.encoder.num_params() > 0 => {
                 let d_enc = backend.to_vec(&grads.d_input)?;

@@ -730,7 +730,7 @@ impl Model {
         let ns = x.len();
         let fd = self.field.config.feature_dim;
         let grads = backend.mlp_backward(&self.radiance, rad_params, fwd, &backend.from_vec(dc))?;
-        let din = backend.to_vec(&grads.d_input)?;
+        let (din, d_mlp) = backend.to_vec2(&grads.d_input, &grads.d_params)?;
         let id = self.radiance.in_dim();
         let rfd = self.radiance_split_dims().0;
         let vd = id - 6 - rfd;
@@ -751,7 +751,7 @@ impl Model {
             Some(e) => e.backward_params(self.radiance_split().0, bytemuck::cast_slice(x), &d_feat),
             None => Vec::new(),
         };
-        d.extend(backend.to_vec(&grads.d_params)?);
+        d.extend(d_mlp);
         Ok(d)
     }
 

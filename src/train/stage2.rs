@@ -1159,7 +1159,7 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
         let pt = backend.upload(p);
         let f0 = backend.mlp_forward(m, &pt, &zf.output, true)?;
         let f1 = backend.mlp_forward(m, &pt, &zp_t, true)?;
-        let (o0, o1) = (backend.to_vec(&f0.output)?, backend.to_vec(&f1.output)?);
+        let (o0, o1) = backend.to_vec2(&f0.output, &f1.output)?;
         let od = m.out_dim();
         for i in 0..b {
             mat[4 * i + o..4 * i + o + od].copy_from_slice(&o0[od * i..od * (i + 1)]);
@@ -1429,7 +1429,10 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
         let pick = |src: &[f32]| -> Vec<f32> { (0..b).flat_map(|i| src[4 * i + o..4 * i + o + od].to_vec()).collect() };
         let g0 = backend.mlp_backward(m, pt, f0, &backend.from_vec(pick(&d_mat)))?;
         let g1 = backend.mlp_backward(m, pt, f1, &backend.from_vec(pick(&d_matp)))?;
-        let (p0, p1) = (backend.to_vec(&g0.d_params)?, backend.to_vec(&g1.d_params)?);
+        // Both paths' parameter and latent gradients with one wait.
+        let mut read = backend.to_vecs(&[&g0.d_params, &g1.d_params, &g0.d_input, &g1.d_input])?.into_iter();
+        let mut next = || read.next().unwrap_or_default();
+        let (p0, p1, x0, x1) = (next(), next(), next(), next());
         d_dec.push(p0.iter().zip(&p1).map(|(a, c)| a + c).collect::<Vec<f32>>());
         if let (Some((_, fc)), true) = (&constant, (*o..*o + od).contains(&3)) {
             let mut d = vec![0.0f32; od];
@@ -1437,7 +1440,6 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
             let gc = backend.to_vec(&backend.mlp_backward(m, pt, fc, &backend.from_vec(d))?.d_params)?;
             d_dec.last_mut().into_iter().for_each(|dd| dd.iter_mut().zip(&gc).for_each(|(a, c)| *a += c));
         }
-        let (x0, x1) = (backend.to_vec(&g0.d_input)?, backend.to_vec(&g1.d_input)?);
         for i in 0..b * ld {
             dz[i] += x0[i] + x1[i];
         }
@@ -1456,12 +1458,13 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
         }
     }
     let ge = backend.mlp_backward(&model.encoder, &enc_p, &zf, &backend.from_vec(dz))?;
+    let (ge_input, ge_params) = backend.to_vec2(&ge.d_input, &ge.d_params)?;
     let mut d_enc = if model.mat_enc.num_params() > 0 {
-        model.mat_enc.backward_params(model.enc_split().0, bytemuck::cast_slice(&batch.x), &backend.to_vec(&ge.d_input)?)
+        model.mat_enc.backward_params(model.enc_split().0, bytemuck::cast_slice(&batch.x), &ge_input)
     } else {
         Vec::new()
     };
-    d_enc.extend(backend.to_vec(&ge.d_params)?);
+    d_enc.extend(ge_params);
     // The colour term's gradient with respect to the points: back through the decoders on the
     // unperturbed latent, the encoder and the position encoding, and for `mii` through its SGs.
     let mut d_point = Vec::new();

@@ -347,36 +347,60 @@ impl GpuContext {
 
     /// Read a buffer back to the host (blocks until the GPU is done with it).
     pub fn read<T: bytemuck::Pod>(&self, src: &GpuBuffer) -> Result<Vec<T>, BackendError> {
-        let size = (src.len * 4) as u64;
-        if size == 0 {
-            return Ok(Vec::new());
-        }
-        let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("readback"),
-            size,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        Ok(self.read_many(&[src])?.remove(0))
+    }
+
+    /// Read several buffers back with one submission and one wait (a round trip each saved).
+    pub fn read_many<T: bytemuck::Pod>(&self, srcs: &[&GpuBuffer]) -> Result<Vec<Vec<T>>, BackendError> {
         let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
-        enc.copy_buffer_to_buffer(&src.buffer, 0, &staging, 0, size);
-        self.count(&self.counters.reads, 1);
-        self.count(&self.counters.read_bytes, size);
+        let mut staged = Vec::with_capacity(srcs.len());
+        for src in srcs {
+            let size = (src.len * 4) as u64;
+            if size == 0 {
+                staged.push(None);
+                continue;
+            }
+            let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("readback"),
+                size,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            enc.copy_buffer_to_buffer(&src.buffer, 0, &staging, 0, size);
+            self.count(&self.counters.reads, 1);
+            self.count(&self.counters.read_bytes, size);
+            staged.push(Some(staging));
+        }
+        if staged.iter().all(Option::is_none) {
+            return Ok(srcs.iter().map(|_| Vec::new()).collect());
+        }
         self.count(&self.counters.submits, 1);
         self.queue.submit([enc.finish()]);
-        let slice = staging.slice(..);
         let (tx, rx) = std::sync::mpsc::channel();
-        slice.map_async(wgpu::MapMode::Read, move |r| {
-            let _ = tx.send(r);
-        });
+        for s in staged.iter().flatten() {
+            let tx = tx.clone();
+            s.slice(..).map_async(wgpu::MapMode::Read, move |r| {
+                let _ = tx.send(r);
+            });
+        }
+        drop(tx);
         self.wait_idle()?;
-        rx.recv()
-            .map_err(|e| BackendError::Map(e.to_string()))?
-            .map_err(|e| BackendError::Map(e.to_string()))?;
-        let out = {
-            let view = slice.get_mapped_range().map_err(|e| BackendError::Map(e.to_string()))?;
-            bytemuck::cast_slice::<u8, T>(&view).to_vec()
-        };
-        staging.unmap();
+        for r in rx.iter() {
+            r.map_err(|e| BackendError::Map(e.to_string()))?;
+        }
+        let mut out = Vec::with_capacity(srcs.len());
+        for s in &staged {
+            match s {
+                None => out.push(Vec::new()),
+                Some(staging) => {
+                    {
+                        let view = staging.slice(..).get_mapped_range().map_err(|e| BackendError::Map(e.to_string()))?;
+                        out.push(bytemuck::cast_slice::<u8, T>(&view).to_vec());
+                    }
+                    staging.unmap();
+                }
+            }
+        }
         Ok(out)
     }
 
