@@ -68,3 +68,22 @@ fn several_buffers_read_back_with_one_wait() {
     let (x, y) = be.to_vec2(&host, &pii_bake::backend::Tensor::Device(ab)).unwrap();
     assert_eq!((x, y), (vec![4.0], a));
 }
+
+#[test]
+fn queued_batches_keep_their_order_with_writes_and_reach_the_device_in_one_submission() {
+    let g = gpu();
+    let x = g.upload_f32("x", &[1.0f32, 2.0]);
+    let y = g.upload_f32("y", &[0.0f32, 0.0]);
+    let s0 = g.counters().submits;
+    for _ in 0..3 {
+        util_kernels::axpy(&g, 1.0, &x, &y).unwrap();
+    }
+    assert_eq!(g.counters().submits, s0, "batches are queued, not submitted one by one");
+    assert_eq!(g.read_f32(&y).unwrap(), vec![3.0, 6.0]);
+    assert_eq!(g.counters().submits - s0, 1.0, "the queued batches and the readback go in one submission");
+    // A write after queued work lands after it, and work queued after the write sees it.
+    util_kernels::axpy(&g, 1.0, &x, &y).unwrap();
+    g.write(&y, &[10.0f32, 20.0]).unwrap();
+    util_kernels::axpy(&g, 1.0, &x, &y).unwrap();
+    assert_eq!(g.read_f32(&y).unwrap(), vec![11.0, 22.0]);
+}

@@ -148,7 +148,13 @@ pub struct GpuContext {
     pub features: wgpu::Features,
     kernels: Mutex<HashMap<String, Arc<Kernel>>>,
     counters: Counters,
+    /// Batches recorded but not yet submitted ([`Batch::submit`]).
+    pending: Mutex<Vec<wgpu::CommandBuffer>>,
 }
+
+/// Batches queued before they are submitted together: a queue submission costs tens of µs of
+/// host time on a discrete GPU, and a training step records hundreds of small batches.
+const PENDING_MAX: usize = 64;
 
 /// Host↔device traffic and synchronisation counted since the context was made: what a training
 /// step costs beyond its kernels (each wait is a round trip to the device).
@@ -255,7 +261,7 @@ impl GpuContext {
         // never a panic.
         device.on_uncaptured_error(Arc::new(|e| tracing::error!("uncaptured wgpu error: {e}")));
         tracing::debug!("wgpu adapter: {} ({:?}, {:?})", info.name, info.backend, info.device_type);
-        Ok(Self { adapter, device, queue, info, limits, features, kernels: Mutex::new(HashMap::new()), counters: Counters::default() })
+        Ok(Self { adapter, device, queue, info, limits, features, kernels: Mutex::new(HashMap::new()), counters: Counters::default(), pending: Mutex::new(Vec::new()) })
     }
 
     pub fn is_software(&self) -> bool {
@@ -338,11 +344,45 @@ impl GpuContext {
             )));
         }
         if !bytes.is_empty() {
+            // A queued write lands before the next submission's commands: submit the batches
+            // recorded before it first.
+            self.flush()?;
             self.count(&self.counters.uploads, 1);
             self.count(&self.counters.upload_bytes, bytes.len() as u64);
             self.queue.write_buffer(&dst.buffer, 0, bytes);
         }
         Ok(())
+    }
+
+    /// Queue a finished batch; submitted with the others at the next read, write or wait (or
+    /// once [`PENDING_MAX`] are queued).
+    fn defer(&self, cb: wgpu::CommandBuffer) -> Result<(), BackendError> {
+        let mut p = self.pending.lock().expect("pending batches poisoned");
+        p.push(cb);
+        if p.len() >= PENDING_MAX {
+            return self.submit_locked(&mut p);
+        }
+        Ok(())
+    }
+
+    /// Submit every queued batch (one queue submission). Returns without waiting.
+    pub fn flush(&self) -> Result<(), BackendError> {
+        let mut p = self.pending.lock().expect("pending batches poisoned");
+        self.submit_locked(&mut p)
+    }
+
+    /// Submit `pending` (held locked, so batches reach the queue in the order they were recorded).
+    fn submit_locked(&self, pending: &mut Vec<wgpu::CommandBuffer>) -> Result<(), BackendError> {
+        if pending.is_empty() {
+            return Ok(());
+        }
+        let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        self.count(&self.counters.submits, 1);
+        self.queue.submit(std::mem::take(pending));
+        match pollster::block_on(scope.pop()) {
+            Some(err) => Err(BackendError::Validation { label: "submission".into(), message: err.to_string() }),
+            None => Ok(()),
+        }
     }
 
     /// Read a buffer back to the host (blocks until the GPU is done with it).
@@ -374,8 +414,12 @@ impl GpuContext {
         if staged.iter().all(Option::is_none) {
             return Ok(srcs.iter().map(|_| Vec::new()).collect());
         }
-        self.count(&self.counters.submits, 1);
-        self.queue.submit([enc.finish()]);
+        // The copies go with the queued batches: one submission.
+        {
+            let mut p = self.pending.lock().expect("pending batches poisoned");
+            p.push(enc.finish());
+            self.submit_locked(&mut p)?;
+        }
         let (tx, rx) = std::sync::mpsc::channel();
         for s in staged.iter().flatten() {
             let tx = tx.clone();
@@ -412,8 +456,9 @@ impl GpuContext {
         self.read(src)
     }
 
-    /// Block until every submitted command buffer has finished.
+    /// Block until every recorded batch has finished.
     pub fn wait_idle(&self) -> Result<(), BackendError> {
+        self.flush()?;
         let t = Instant::now();
         let r = self
             .device
@@ -646,18 +691,19 @@ impl Batch<'_> {
         Ok(())
     }
 
-    /// Submit the batch without waiting for it: the queue runs submissions in order, so a later
-    /// dispatch, write or [`GpuContext::read`] sees its results, and wgpu keeps the buffers it
-    /// uses alive until it is done. Waiting here cost a round trip to the device per kernel
-    /// launch, most of what a small training batch spends on a discrete GPU.
+    /// Finish the batch and queue it, without waiting: queued batches are submitted together,
+    /// in the order they were recorded, at the next read, write or wait (or every
+    /// [`PENDING_MAX`] batches), so a later dispatch, write or [`GpuContext::read`] sees its
+    /// results, and wgpu keeps the buffers it uses alive until it is done. Waiting here cost a
+    /// round trip to the device per kernel launch, and a submission per batch tens of µs of
+    /// host time: most of what a small training batch spends on a discrete GPU.
     pub fn submit(self) -> Result<(), BackendError> {
         let scope = self.ctx.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        self.ctx.count(&self.ctx.counters.submits, 1);
-        self.ctx.queue.submit([self.encoder.finish()]);
-        match pollster::block_on(scope.pop()) {
-            Some(err) => Err(BackendError::Validation { label: self.label, message: err.to_string() }),
-            None => Ok(()),
+        let cb = self.encoder.finish();
+        if let Some(err) = pollster::block_on(scope.pop()) {
+            return Err(BackendError::Validation { label: self.label, message: err.to_string() });
         }
+        self.ctx.defer(cb)
     }
 }
 
