@@ -590,7 +590,8 @@ impl SdfField {
             }
         }
         let grads = backend.mlp_backward(&self.mlp, &pm_t, &fwd, &backend.from_vec(d_out))?;
-        let mut d_params = match (backend.gpu(), self.encoder.device_layout(), &pts_t) {
+        // The encoding's and the MLP's parameter gradients, read back with one wait.
+        let (mut d_params, d_mlp) = match (backend.gpu(), self.encoder.device_layout(), &pts_t) {
             (Some(g), Some(l), Some(pts_t)) => {
                 let m = pts.len() / 3;
                 let d_row = grads.d_input.device()?;
@@ -598,18 +599,15 @@ impl SdfField {
                 row_kernel(g, "split", &l, m, d_row, d_row, &d_enc, m * l.enc)?;
                 let grid = self.on_device(backend, pe);
                 let (dp, _) = backend.encoding_backward(&l.encoding, &grid, pts_t, m, &Tensor::Device(d_enc), false)?;
-                // Both parts of the gradient with one wait.
-                let (mut d, d_mlp) = backend.to_vec2(&dp, &grads.d_params)?;
-                d.extend(d_mlp);
-                return Ok((value, d));
+                backend.to_vec2(&dp, &grads.d_params)?
             }
             _ if self.encoder.num_params() > 0 => {
-                let d_enc = backend.to_vec(&grads.d_input)?;
-                self.encoder.backward_params(pe, &pts, &d_enc)
+                let (d_enc, d_mlp) = backend.to_vec2(&grads.d_input, &grads.d_params)?;
+                (self.encoder.backward_params(pe, &pts, &d_enc), d_mlp)
             }
-            _ => Vec::new(),
+            _ => (Vec::new(), backend.to_vec(&grads.d_params)?),
         };
-        d_params.extend(backend.to_vec(&grads.d_params)?);
+        d_params.extend(d_mlp);
         Ok((value, d_params))
     }
 }

@@ -8,7 +8,7 @@
 //! is evaluated at every step, including those that finished within a chunk of steps, so the
 //! evaluation count is that of the device's work, not the host loop's.
 
-use super::{Rays, Segment, TraceConfig, TraceResult};
+use super::{Rays, Segment, Start, TraceConfig, TraceResult};
 use crate::backend::gpu::{groups_1d, shaders, Access, GpuBuffer, GpuContext, Kernel, KernelSpec};
 use crate::backend::BackendError;
 use std::sync::Arc;
@@ -55,14 +55,6 @@ const CHUNK: usize = 1 << 16;
 fn kernel(g: &GpuContext, entry: &str) -> Result<Arc<Kernel>, BackendError> {
     let spec = KernelSpec::new(true, &[Access::Read, Access::Read, Access::ReadWrite, Access::ReadWrite]);
     g.kernel("trace", &shaders::with_lib(WGSL), entry, &spec)
-}
-
-/// A ray to sphere trace from `t` within its sphere interval `(lo, hi)`.
-pub(super) struct Start {
-    pub ray: usize,
-    pub t: f32,
-    pub lo: f32,
-    pub hi: f32,
 }
 
 fn ray_rows<'a>(rays: &Rays, idx: impl Iterator<Item = &'a usize>) -> Vec<f32> {
@@ -145,7 +137,7 @@ pub(super) fn sphere_trace(
         let mut st = vec![0f32; chunk.len() * STATE];
         for (k, s) in chunk.iter().enumerate() {
             let b = &mut st[k * STATE..(k + 1) * STATE];
-            b[..7].copy_from_slice(&[s.t, s.t, f32::INFINITY, s.t, s.t, s.lo, s.hi]);
+            b[..7].copy_from_slice(&[s.lo, s.lo, f32::INFINITY, s.lo, s.lo, s.lo, s.hi]);
             b[7] = f32::from_bits(MARCHING);
         }
         let marching = |b: &[f32]| b[7].to_bits() == MARCHING;

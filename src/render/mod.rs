@@ -230,14 +230,10 @@ pub fn trace(f: &dyn SdfBatch, rays: &Rays, cfg: &TraceConfig) -> Result<TraceRe
         sampled: vec![false; n],
         evaluations: 0,
     };
-    let mut interval = vec![(0.0f32, 0.0f32); n];
-    let mut starts: Vec<device::Start> = Vec::with_capacity(n);
+    let mut starts: Vec<Start> = Vec::with_capacity(n);
     for i in 0..n {
         match sphere_interval(rays.origins[i], rays.dirs[i], cfg.bound) {
-            Some((a, b)) => {
-                interval[i] = (a, b);
-                starts.push(device::Start { ray: i, t: a, lo: a, hi: b });
-            }
+            Some((lo, hi)) => starts.push(Start { ray: i, lo, hi }),
             None => {
                 // Closest point to the centre: the mask loss pushes the field up there.
                 let o = rays.origins[i];
@@ -252,7 +248,7 @@ pub fn trace(f: &dyn SdfBatch, rays: &Rays, cfg: &TraceConfig) -> Result<TraceRe
     let dev = f.device();
     let unfinished = match dev {
         Some(d) if !starts.is_empty() => device::sphere_trace(d, rays, &starts, cfg, &mut res, &mut evals)?,
-        _ => sphere_trace_host(f, rays, &starts, &interval, cfg, &mut res, &mut evals)?,
+        _ => sphere_trace_host(f, rays, &starts, cfg, &mut res, &mut evals)?,
     };
 
     // Sampler + secant on unfinished rays.
@@ -339,8 +335,7 @@ pub fn trace(f: &dyn SdfBatch, rays: &Rays, cfg: &TraceConfig) -> Result<TraceRe
 fn sphere_trace_host(
     f: &dyn SdfBatch,
     rays: &Rays,
-    starts: &[device::Start],
-    interval: &[(f32, f32)],
+    starts: &[Start],
     cfg: &TraceConfig,
     res: &mut TraceResult,
     evals: &mut usize,
@@ -348,7 +343,7 @@ fn sphere_trace_host(
     let local = cfg.local_samples >= 2;
     let mut active: Vec<Marching> = starts
         .iter()
-        .map(|s| Marching { ray: s.ray, t: s.t, last_pos: s.t, best_f: f32::INFINITY, best_t: s.t, before_best: s.t })
+        .map(|s| Marching { ray: s.ray, t: s.lo, last_pos: s.lo, best_f: f32::INFINITY, best_t: s.lo, before_best: s.lo, lo: s.lo, hi: s.hi })
         .collect();
     let mut unfinished: Vec<Segment> = Vec::new();
     for step in 0..=cfg.sphere_steps {
@@ -379,26 +374,25 @@ fn sphere_trace_host(
                 // Overshot into the surface: the first sign change lies after the last point
                 // known outside (IDR samples from there to the far end; the local sampler
                 // samples up to the point inside).
-                let t1 = if local { t } else { interval[i].1 };
+                let t1 = if local { t } else { m.hi };
                 let samples = if local { cfg.local_samples } else { cfg.sampler_samples };
                 unfinished.push(Segment { ray: i, t0: m.last_pos, t1, samples, visited });
                 continue;
             }
             if step == cfg.sphere_steps {
                 // Out of steps: the whole segment (its min-SDF point may lie behind t).
-                let (t0, t1) = interval[i];
-                unfinished.push(Segment { ray: i, t0, t1, samples: cfg.sampler_samples, visited });
+                unfinished.push(Segment { ray: i, t0: m.lo, t1: m.hi, samples: cfg.sampler_samples, visited });
                 continue;
             }
             let tn = t + fv;
-            if tn > interval[i].1 {
+            if tn > m.hi {
                 // Left the sphere without meeting the surface: sphere tracing's steps are too
                 // coarse a min-SDF estimate. IDR samples the whole segment; the local sampler
                 // samples between the points before and after the closest one visited.
                 let seg = if local {
-                    Segment { ray: i, t0: m.before_best, t1: (m.best_t + m.best_f).min(interval[i].1), samples: cfg.local_samples, visited }
+                    Segment { ray: i, t0: m.before_best, t1: (m.best_t + m.best_f).min(m.hi), samples: cfg.local_samples, visited }
                 } else {
-                    Segment { ray: i, t0: interval[i].0, t1: interval[i].1, samples: cfg.sampler_samples, visited: None }
+                    Segment { ray: i, t0: m.lo, t1: m.hi, samples: cfg.sampler_samples, visited: None }
                 };
                 unfinished.push(seg);
                 continue;
@@ -456,8 +450,16 @@ fn secant_host(
     Ok(())
 }
 
-/// A ray being sphere traced: where it is, the last point known outside, and the closest point
-/// visited so far (its value and the point before it), which the local sampler searches around.
+/// A ray that meets the bounding sphere over `[lo, hi]`: sphere tracing starts at `lo`.
+struct Start {
+    ray: usize,
+    lo: f32,
+    hi: f32,
+}
+
+/// A ray being sphere traced: where it is, the last point known outside, the closest point
+/// visited so far (its value and the point before it), which the local sampler searches around,
+/// and its sphere interval.
 #[derive(Clone, Copy)]
 struct Marching {
     ray: usize,
@@ -466,6 +468,8 @@ struct Marching {
     best_f: f32,
     best_t: f32,
     before_best: f32,
+    lo: f32,
+    hi: f32,
 }
 
 /// An unfinished ray's sampled interval, with the closest point sphere tracing visited (the

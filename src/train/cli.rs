@@ -614,10 +614,10 @@ pub fn evaluate_views(backend: &Backend, model: &Model, tc: &TraceConfig, views:
 pub fn render_rays(backend: &Backend, model: &Model, tc: &TraceConfig, rays: &Rays) -> Result<Vec<(bool, [f32; 3])>, BackendError> {
     let mut out = Vec::with_capacity(rays.len());
     let chunk = 8192;
+    let f = model.sdf_batch(backend)?;
     for start in (0..rays.len()).step_by(chunk) {
         let end = (start + chunk).min(rays.len());
         let r = Rays { origins: rays.origins[start..end].to_vec(), dirs: rays.dirs[start..end].to_vec() };
-        let f = model.sdf_batch(backend)?;
         let tr = trace(&f, &r, tc)?;
         let hits: Vec<usize> = (0..r.len()).filter(|&i| tr.hit[i]).collect();
         let x: Vec<[f32; 3]> = hits.iter().map(|&i| tr.points[i]).collect();

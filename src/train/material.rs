@@ -492,10 +492,10 @@ pub fn render_view_lit(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, m
     out.roughness = vec![0.0; n];
     out.normal = vec![[0.0; 3]; n];
     let mut rgbs = vec![vec![[0.0f32; 3]; n]; envs.len()];
+    let f = sdf.sdf_batch(backend)?;
     for start in (0..n).step_by(8192) {
         let end = (start + 8192).min(n);
         let r = Rays { origins: rays.origins[start..end].to_vec(), dirs: rays.dirs[start..end].to_vec() };
-        let f = sdf.sdf_batch(backend)?;
         let tr = trace(&f, &r, tc)?;
         let idx: Vec<usize> = (0..r.len()).filter(|&i| tr.hit[i]).collect();
         let mut c = SurfaceCache { x: idx.iter().map(|&i| tr.points[i]).collect(), v: idx.iter().map(|&i| r.dirs[i].map(|v| -v)).collect(), ..Default::default() };
