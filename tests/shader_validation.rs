@@ -28,7 +28,7 @@ fn every_wgsl_file_validates_with_naga() {
         let src = std::fs::read_to_string(f).unwrap();
         // Library files are validated on their own; kernel files with the library prepended.
         let is_lib = f.parent().is_some_and(|p| p.ends_with("lib"));
-        let full = if is_lib { shaders::LIB.to_string() } else { shaders::with_lib(&src) };
+        let full = if is_lib { shaders::LIB.to_string() } else { shaders::prepend_lib(&src) };
         if let Err(e) = validate_wgsl(&f.display().to_string(), &full) {
             failures.push(format!("{}:\n{e}", f.display()));
         }

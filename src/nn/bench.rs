@@ -7,6 +7,12 @@
 //! grid) and `Backend::mlp_forward`, plus for forward+backward `mlp_backward` and the encoding's
 //! parameter backward (the hash table scatter) — with parameters and inputs resident on the
 //! backend. GFLOP/s figures count the MLP's FLOPs only (the encodings are memory-bound).
+//!
+//! On wgpu it also measures what a launch costs beyond its kernel: the host's CPU time per
+//! queued launch of a one-workgroup kernel (the calling thread's CPU time, so a software
+//! adapter's own threads are not counted) and a readback's round trip. A training step's
+//! overhead is about its launches times the first plus its waits times the second (the
+//! training reports count both, `gpu_per_step`).
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -44,6 +50,74 @@ pub struct BenchNnArgs {
     /// Largest batch run on a software adapter (lavapipe); larger ones are skipped.
     #[arg(long, default_value_t = 4096)]
     pub software_max_batch: usize,
+    /// Launches per timed round of the launch-overhead measurement (wgpu only).
+    #[arg(long, default_value_t = 3000)]
+    pub launches: usize,
+}
+
+/// What a launch and a readback cost on the host, beyond the kernels (see the module doc).
+#[derive(Debug, Clone, serde::Serialize)]
+struct LaunchCost {
+    device: String,
+    launches: usize,
+    /// CPU time of the launching thread per queued launch (wall time where the platform has no
+    /// per-thread CPU clock), best round.
+    host_us_per_launch: f64,
+    host_clock: &'static str,
+    /// Wall time per launch while recording (includes a software adapter's threads competing).
+    wall_us_per_launch: f64,
+    /// One launch, then a 4-byte readback, waited for: the best of the rounds.
+    round_trip_us: f64,
+}
+
+/// The calling thread's CPU time in seconds (Linux), for host costs that a software adapter's
+/// own threads would blur in wall time.
+fn thread_cpu_seconds() -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
+    Some(s.split_whitespace().next()?.parse::<f64>().ok()? * 1e-9)
+}
+
+fn launch_cost(g: &crate::backend::GpuContext, launches: usize, iters: usize) -> anyhow::Result<LaunchCost> {
+    use crate::backend::gpu::util_kernels::axpy;
+    let n = launches.max(1);
+    let (x, y) = (g.upload_f32("bench.x", &[1.0; 64]), g.zeros_f32("bench.y", 64));
+    for _ in 0..64 {
+        axpy(g, 1.0, &x, &y)?;
+    }
+    g.read_f32(&y)?;
+    let (mut host, mut wall, mut trip) = (f64::INFINITY, f64::INFINITY, f64::INFINITY);
+    let clock = if thread_cpu_seconds().is_some() { "thread CPU time" } else { "wall time" };
+    for _ in 0..iters.max(3) {
+        let (t, c) = (Instant::now(), thread_cpu_seconds());
+        for _ in 0..n {
+            axpy(g, 1.0, &x, &y)?;
+        }
+        let w = t.elapsed().as_secs_f64();
+        let c = match (c, thread_cpu_seconds()) {
+            (Some(a), Some(b)) => b - a,
+            _ => w,
+        };
+        g.read_f32(&y)?;
+        host = host.min(c / n as f64);
+        wall = wall.min(w / n as f64);
+        let t = Instant::now();
+        axpy(g, 1.0, &x, &y)?;
+        g.read_f32(&y)?;
+        trip = trip.min(t.elapsed().as_secs_f64());
+    }
+    let v = g.read_f32(&y)?;
+    let want = (64 + 1 + iters.max(3) * (n + 1)) as f32;
+    if v[0] != want {
+        anyhow::bail!("launch benchmark: y = {} after the launches, expected {want}", v[0]);
+    }
+    Ok(LaunchCost {
+        device: String::new(),
+        launches: n,
+        host_us_per_launch: host * 1e6,
+        host_clock: clock,
+        wall_us_per_launch: wall * 1e6,
+        round_trip_us: trip * 1e6,
+    })
 }
 
 #[derive(Debug, Clone, serde::Serialize)]
@@ -211,6 +285,17 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
         args.gemm_rows,
         rayon::current_num_threads()
     ));
+    let mut launch = Vec::new();
+    for b in &backends {
+        if let Some(g) = b.gpu() {
+            let c = LaunchCost { device: b.describe(), ..launch_cost(g, args.launches, args.iters)? };
+            ctx.say(format!(
+                "launch overhead on {}: {:.2} µs host per launch ({}), {:.2} µs wall, round trip {:.0} µs",
+                c.device, c.host_us_per_launch, c.host_clock, c.wall_us_per_launch, c.round_trip_us
+            ));
+            launch.push(c);
+        }
+    }
     let mut rows: Vec<Row> = Vec::new();
     let mut notes = serde_json::Map::new();
     ctx.say(format!(
@@ -314,6 +399,7 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
         "results": rows,
         "wgpu_over_cpu": ratios,
         "cpu_vs_gemm_reference": cpu_vs_gemm,
+        "launch_overhead": launch,
     });
     crate::util::atomic_write(&args.out, serde_json::to_string_pretty(&report)?.as_bytes())?;
     ctx.say(format!("wrote {}", args.out.display()));

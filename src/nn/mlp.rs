@@ -1045,7 +1045,7 @@ fn spec(n_storage_read: usize, n_rw: usize) -> KernelSpec {
 
 struct GpuMlp<'a> {
     ctx: &'a GpuContext,
-    src: String,
+    src: &'static str,
 }
 
 impl<'a> GpuMlp<'a> {
@@ -1062,7 +1062,7 @@ impl<'a> GpuMlp<'a> {
         reads: usize,
         rws: usize,
     ) -> Result<std::sync::Arc<crate::backend::gpu::Kernel>, BackendError> {
-        self.ctx.kernel("mlp", &self.src, entry, &spec(reads, rws))
+        self.ctx.kernel("mlp", self.src, entry, &spec(reads, rws))
     }
 
     #[allow(clippy::too_many_arguments)]

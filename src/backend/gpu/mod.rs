@@ -146,15 +146,102 @@ pub struct GpuContext {
     pub info: wgpu::AdapterInfo,
     pub limits: wgpu::Limits,
     pub features: wgpu::Features,
-    kernels: Mutex<HashMap<String, Arc<Kernel>>>,
+    /// Compiled kernels by label, then entry point (looked up without allocating: every launch asks).
+    kernels: Mutex<HashMap<String, HashMap<String, Arc<Kernel>>>>,
     counters: Counters,
-    /// Batches recorded but not yet submitted ([`Batch::submit`]).
-    pending: Mutex<Vec<wgpu::CommandBuffer>>,
+    /// Batches submitted ([`Batch::submit`]) but not yet on the queue.
+    pending: Mutex<Pending>,
+    /// The uniform arena (see [`Pending`]) and its offset alignment.
+    arena: wgpu::Buffer,
+    uniform_align: usize,
 }
 
 /// Batches queued before they are submitted together: a queue submission costs tens of µs of
 /// host time on a discrete GPU, and a training step records hundreds of small batches.
 const PENDING_MAX: usize = 64;
+
+/// One command of a [`Batch`], kept until the batch is submitted and then recorded into the
+/// context's open encoder.
+enum Command {
+    Dispatch {
+        label: String,
+        pipeline: wgpu::ComputePipeline,
+        bind_group: wgpu::BindGroup,
+        /// The params block, padded to 16 bytes: written into the uniform arena when queued.
+        uniform: Option<Vec<u8>>,
+        groups: [u32; 3],
+        timing: Option<wgpu::QuerySet>,
+    },
+    Copy { src: wgpu::Buffer, dst: wgpu::Buffer, size: u64 },
+    Resolve { queries: wgpu::QuerySet, dst: wgpu::Buffer },
+}
+
+impl Command {
+    /// Record into the open encoder; `offset` is the dispatch's params block in the uniform
+    /// arena. Consecutive untimed dispatches share one compute pass (wgpu orders them inside it:
+    /// a dispatch that reads what an earlier one wrote gets its barrier); a copy, a timed
+    /// dispatch or a submission ends it.
+    fn record(&self, ctx: &GpuContext, p: &mut Pending, offset: u32) {
+        let Pending { encoder, pass, .. } = p;
+        let enc = encoder.get_or_insert_with(|| ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("queued") }));
+        match self {
+            Command::Dispatch { label, pipeline, bind_group, groups, timing, uniform } => {
+                let mut own;
+                let pass = match timing {
+                    None => pass.get_or_insert_with(|| {
+                        enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("queued"), timestamp_writes: None }).forget_lifetime()
+                    }),
+                    Some(qs) => {
+                        *pass = None;
+                        let timestamp_writes = Some(wgpu::ComputePassTimestampWrites {
+                            query_set: qs,
+                            beginning_of_pass_write_index: Some(0),
+                            end_of_pass_write_index: Some(1),
+                        });
+                        own = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes }).forget_lifetime();
+                        &mut own
+                    }
+                };
+                pass.set_pipeline(pipeline);
+                let offsets = [offset];
+                pass.set_bind_group(0, bind_group, if uniform.is_some() { &offsets[..] } else { &[] });
+                pass.dispatch_workgroups(groups[0], groups[1], groups[2]);
+            }
+            Command::Copy { src, dst, size } => {
+                *pass = None;
+                enc.copy_buffer_to_buffer(src, 0, dst, 0, *size)
+            }
+            Command::Resolve { queries, dst } => {
+                *pass = None;
+                enc.resolve_query_set(queries, 0..2, dst, 0)
+            }
+        }
+    }
+}
+
+/// Work submitted but not yet on the queue: one open command encoder that every submitted batch
+/// records into (one command buffer per queue submission: making, finishing and submitting a
+/// command buffer per batch was most of a launch's host time), and how many batches it holds.
+///
+/// The dispatches' params blocks go into one uniform buffer, the arena, bound with a dynamic
+/// offset: `uniforms` holds what the open encoder's dispatches read from it, written with one
+/// queue write just before the encoder is submitted (a write lands after the earlier
+/// submissions' reads and before this one's), instead of a buffer made per launch.
+#[derive(Default)]
+struct Pending {
+    /// The open compute pass of `encoder` (ended before anything else is recorded into it, and
+    /// before it is finished).
+    pass: Option<wgpu::ComputePass<'static>>,
+    encoder: Option<wgpu::CommandEncoder>,
+    batches: usize,
+    uniforms: Vec<u8>,
+}
+
+/// Bytes of the uniform arena: 16384 params blocks at the usual 256-byte offset alignment.
+const ARENA_BYTES: u64 = 4 << 20;
+
+/// The largest params block a kernel may have (a uniform arena slot).
+const MAX_UNIFORM_BYTES: usize = 256;
 
 /// Host↔device traffic and synchronisation counted since the context was made: what a training
 /// step costs beyond its kernels (each wait is a round trip to the device).
@@ -261,7 +348,26 @@ impl GpuContext {
         // never a panic.
         device.on_uncaptured_error(Arc::new(|e| tracing::error!("uncaptured wgpu error: {e}")));
         tracing::debug!("wgpu adapter: {} ({:?}, {:?})", info.name, info.backend, info.device_type);
-        Ok(Self { adapter, device, queue, info, limits, features, kernels: Mutex::new(HashMap::new()), counters: Counters::default(), pending: Mutex::new(Vec::new()) })
+        let arena = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("uniform arena"),
+            size: ARENA_BYTES,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let uniform_align = (limits.min_uniform_buffer_offset_alignment as usize).max(16);
+        Ok(Self {
+            adapter,
+            device,
+            queue,
+            info,
+            limits,
+            features,
+            kernels: Mutex::new(HashMap::new()),
+            counters: Counters::default(),
+            pending: Mutex::new(Pending::default()),
+            arena,
+            uniform_align,
+        })
     }
 
     pub fn is_software(&self) -> bool {
@@ -354,12 +460,31 @@ impl GpuContext {
         Ok(())
     }
 
-    /// Queue a finished batch; submitted with the others at the next read, write or wait (or
-    /// once [`PENDING_MAX`] are queued).
-    fn defer(&self, cb: wgpu::CommandBuffer) -> Result<(), BackendError> {
+    /// Record a submitted batch's commands into the open encoder; submitted with the others at
+    /// the next read, write or wait (or once [`PENDING_MAX`] batches are queued).
+    fn defer(&self, commands: &[Command]) -> Result<(), BackendError> {
+        let slot = |c: &Command| match c {
+            Command::Dispatch { uniform: Some(u), .. } => u.len().div_ceil(self.uniform_align) * self.uniform_align,
+            _ => 0,
+        };
+        let need: usize = commands.iter().map(slot).sum();
+        if need as u64 > ARENA_BYTES {
+            return Err(BackendError::Shape(format!("a batch of {} launches needs more than the {ARENA_BYTES}-byte uniform arena", commands.len())));
+        }
         let mut p = self.pending.lock().expect("pending batches poisoned");
-        p.push(cb);
-        if p.len() >= PENDING_MAX {
+        if (p.uniforms.len() + need) as u64 > ARENA_BYTES {
+            self.submit_locked(&mut p)?;
+        }
+        for c in commands {
+            let offset = p.uniforms.len();
+            if let Command::Dispatch { uniform: Some(u), .. } = c {
+                p.uniforms.extend_from_slice(u);
+                p.uniforms.resize(offset + slot(c), 0);
+            }
+            c.record(self, &mut p, offset as u32);
+        }
+        p.batches += 1;
+        if p.batches >= PENDING_MAX {
             return self.submit_locked(&mut p);
         }
         Ok(())
@@ -371,14 +496,21 @@ impl GpuContext {
         self.submit_locked(&mut p)
     }
 
-    /// Submit `pending` (held locked, so batches reach the queue in the order they were recorded).
-    fn submit_locked(&self, pending: &mut Vec<wgpu::CommandBuffer>) -> Result<(), BackendError> {
-        if pending.is_empty() {
+    /// Submit the open encoder (`pending` held locked, so batches reach the queue in the order
+    /// they were recorded). A validation error in any recorded pass surfaces here, naming it.
+    fn submit_locked(&self, pending: &mut Pending) -> Result<(), BackendError> {
+        pending.batches = 0;
+        pending.pass = None;
+        let Some(enc) = pending.encoder.take() else {
             return Ok(());
-        }
+        };
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
+        if !pending.uniforms.is_empty() {
+            self.queue.write_buffer(&self.arena, 0, &pending.uniforms);
+            pending.uniforms.clear();
+        }
         self.count(&self.counters.submits, 1);
-        self.queue.submit(std::mem::take(pending));
+        self.queue.submit([enc.finish()]);
         match pollster::block_on(scope.pop()) {
             Some(err) => Err(BackendError::Validation { label: "submission".into(), message: err.to_string() }),
             None => Ok(()),
@@ -392,7 +524,7 @@ impl GpuContext {
 
     /// Read several buffers back with one submission and one wait (a round trip each saved).
     pub fn read_many<T: bytemuck::Pod>(&self, srcs: &[&GpuBuffer]) -> Result<Vec<Vec<T>>, BackendError> {
-        let mut enc = self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("readback") });
+        let mut copies = Vec::with_capacity(srcs.len());
         let mut staged = Vec::with_capacity(srcs.len());
         for src in srcs {
             let size = (src.len * 4) as u64;
@@ -406,7 +538,7 @@ impl GpuContext {
                 usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
                 mapped_at_creation: false,
             });
-            enc.copy_buffer_to_buffer(&src.buffer, 0, &staging, 0, size);
+            copies.push(Command::Copy { src: src.buffer.clone(), dst: staging.clone(), size });
             self.count(&self.counters.reads, 1);
             self.count(&self.counters.read_bytes, size);
             staged.push(Some(staging));
@@ -417,7 +549,7 @@ impl GpuContext {
         // The copies go with the queued batches: one submission.
         {
             let mut p = self.pending.lock().expect("pending batches poisoned");
-            p.push(enc.finish());
+            copies.iter().for_each(|c| c.record(self, &mut p, 0));
             self.submit_locked(&mut p)?;
         }
         let (tx, rx) = std::sync::mpsc::channel();
@@ -475,10 +607,10 @@ impl GpuContext {
     /// Compile (once, then cached by `label` + `entry`) a compute kernel from WGSL source.
     /// Shader errors come back as [`BackendError::Shader`], never a panic.
     pub fn kernel(&self, label: &str, source: &str, entry: &str, spec: &KernelSpec) -> Result<Arc<Kernel>, BackendError> {
-        let key = format!("{label}::{entry}");
-        if let Some(k) = self.kernels.lock().expect("kernel cache poisoned").get(&key) {
+        if let Some(k) = self.kernels.lock().expect("kernel cache poisoned").get(label).and_then(|m| m.get(entry)) {
             return Ok(k.clone());
         }
+        let key = format!("{label}::{entry}");
         // Validate with naga first: a readable error with source spans instead of a device error.
         validate_wgsl(label, source)?;
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
@@ -493,7 +625,7 @@ impl GpuContext {
                 visibility: wgpu::ShaderStages::COMPUTE,
                 ty: wgpu::BindingType::Buffer {
                     ty: wgpu::BufferBindingType::Uniform,
-                    has_dynamic_offset: false,
+                    has_dynamic_offset: true,
                     min_binding_size: None,
                 },
                 count: None,
@@ -530,17 +662,13 @@ impl GpuContext {
             return Err(BackendError::Shader { label: key, message: err.to_string() });
         }
         let k = Arc::new(Kernel { label: key.clone(), pipeline, layout, spec: spec.clone() });
-        self.kernels.lock().expect("kernel cache poisoned").insert(key, k.clone());
+        self.kernels.lock().expect("kernel cache poisoned").entry(label.to_string()).or_default().insert(entry.to_string(), k.clone());
         Ok(k)
     }
 
     /// Start recording a batch of dispatches into one command buffer.
     pub fn batch(&self, label: &str) -> Batch<'_> {
-        Batch {
-            ctx: self,
-            encoder: self.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some(label) }),
-            label: label.to_string(),
-        }
+        Batch { ctx: self, commands: Vec::new(), label: label.to_string() }
     }
 
     /// Record and submit one dispatch (see [`Batch::submit`]). Validation errors come back as errors.
@@ -582,7 +710,7 @@ impl GpuContext {
         });
         let mut b = self.batch(&kernel.label);
         b.dispatch_inner(kernel, uniform, storage, groups, Some(&qs))?;
-        b.encoder.resolve_query_set(&qs, 0..2, &resolve, 0);
+        b.commands.push(Command::Resolve { queries: qs, dst: resolve.clone() });
         b.submit()?;
         let ticks: Vec<u32> = self.read(&GpuBuffer { buffer: resolve, len: 4 })?;
         let t0 = ticks[0] as u64 | ((ticks[1] as u64) << 32);
@@ -592,10 +720,10 @@ impl GpuContext {
     }
 }
 
-/// A batch of dispatches recorded into one command encoder and submitted together.
+/// A batch of dispatches (and copies) submitted together, in order.
 pub struct Batch<'a> {
     ctx: &'a GpuContext,
-    encoder: wgpu::CommandEncoder,
+    commands: Vec<Command>,
     label: String,
 }
 
@@ -634,19 +762,21 @@ impl Batch<'_> {
         if groups.iter().any(|&g| g > max) {
             return Err(BackendError::Shape(format!("{}: workgroup count {groups:?} exceeds the limit {max}", kernel.label)));
         }
-        let ubuf = uniform.map(|u| {
-            // Uniform blocks are padded to 16 bytes.
+        // Uniform blocks are padded to 16 bytes; the bind group reads one from the arena at the
+        // offset the batch gets when it is queued.
+        let ubytes = uniform.map(|u| {
             let mut bytes = u.to_vec();
             bytes.resize(bytes.len().div_ceil(16).max(1) * 16, 0);
-            ctx.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("params"),
-                contents: &bytes,
-                usage: wgpu::BufferUsages::UNIFORM,
-            })
+            bytes
         });
+        if let Some(u) = ubytes.as_ref().filter(|u| u.len() > MAX_UNIFORM_BYTES) {
+            return Err(BackendError::Shape(format!("{}: a {}-byte params block (at most {MAX_UNIFORM_BYTES})", kernel.label, u.len())));
+        }
         let mut entries = Vec::new();
-        if let Some(u) = &ubuf {
-            entries.push(wgpu::BindGroupEntry { binding: 0, resource: u.as_entire_binding() });
+        if let Some(u) = &ubytes {
+            let size = std::num::NonZeroU64::new(u.len() as u64);
+            let binding = wgpu::BufferBinding { buffer: &ctx.arena, offset: 0, size };
+            entries.push(wgpu::BindGroupEntry { binding: 0, resource: wgpu::BindingResource::Buffer(binding) });
         }
         for (i, b) in storage.iter().enumerate() {
             let buf = match b {
@@ -661,22 +791,18 @@ impl Batch<'_> {
             layout: &kernel.layout,
             entries: &entries,
         });
-        {
-            let tw = timing.map(|qs| wgpu::ComputePassTimestampWrites {
-                query_set: qs,
-                beginning_of_pass_write_index: Some(0),
-                end_of_pass_write_index: Some(1),
-            });
-            let mut pass =
-                self.encoder.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(&kernel.label), timestamp_writes: tw });
-            pass.set_pipeline(&kernel.pipeline);
-            pass.set_bind_group(0, &bg, &[]);
-            pass.dispatch_workgroups(groups[0], groups[1], groups[2]);
-        }
-        ctx.count(&ctx.counters.dispatches, 1);
         if let Some(err) = pollster::block_on(scope.pop()) {
             return Err(BackendError::Validation { label: kernel.label.clone(), message: err.to_string() });
         }
+        self.commands.push(Command::Dispatch {
+            label: kernel.label.clone(),
+            pipeline: kernel.pipeline.clone(),
+            bind_group: bg,
+            uniform: ubytes,
+            groups,
+            timing: timing.cloned(),
+        });
+        ctx.count(&ctx.counters.dispatches, 1);
         Ok(())
     }
 
@@ -686,24 +812,24 @@ impl Batch<'_> {
             return Err(BackendError::Shape(format!("copy of {} elements into {}", src.len, dst.len)));
         }
         if src.len > 0 {
-            self.encoder.copy_buffer_to_buffer(&src.buffer, 0, &dst.buffer, 0, (src.len * 4) as u64);
+            self.commands.push(Command::Copy { src: src.buffer.clone(), dst: dst.buffer.clone(), size: (src.len * 4) as u64 });
         }
         Ok(())
     }
 
-    /// Finish the batch and queue it, without waiting: queued batches are submitted together,
-    /// in the order they were recorded, at the next read, write or wait (or every
-    /// [`PENDING_MAX`] batches), so a later dispatch, write or [`GpuContext::read`] sees its
-    /// results, and wgpu keeps the buffers it uses alive until it is done. Waiting here cost a
-    /// round trip to the device per kernel launch, and a submission per batch tens of µs of
-    /// host time: most of what a small training batch spends on a discrete GPU.
+    /// Queue the batch, without waiting: its commands are recorded into the context's open
+    /// encoder, which is submitted, in the order batches were queued, at the next read, write
+    /// or wait (or every [`PENDING_MAX`] batches), so a later dispatch, write or
+    /// [`GpuContext::read`] sees its results, and wgpu keeps the buffers it uses alive until it
+    /// is done. Waiting here cost a round trip to the device per kernel launch, and a command
+    /// buffer per batch tens of µs of host time: most of what a small training batch spends on
+    /// a discrete GPU.
     pub fn submit(self) -> Result<(), BackendError> {
-        let scope = self.ctx.device.push_error_scope(wgpu::ErrorFilter::Validation);
-        let cb = self.encoder.finish();
-        if let Some(err) = pollster::block_on(scope.pop()) {
-            return Err(BackendError::Validation { label: self.label, message: err.to_string() });
+        if self.commands.is_empty() {
+            return Ok(());
         }
-        self.ctx.defer(cb)
+        tracing::trace!("queued batch {} ({} commands)", self.label, self.commands.len());
+        self.ctx.defer(&self.commands)
     }
 }
 
@@ -729,9 +855,23 @@ pub mod shaders {
         "\n"
     );
 
-    /// A kernel family's source with the shared library prepended.
-    pub fn with_lib(family: &str) -> String {
-        format!("{LIB}\n{family}")
+    /// `source` with the shared library prepended.
+    pub fn prepend_lib(source: &str) -> String {
+        format!("{LIB}\n{source}")
+    }
+
+    /// A kernel family's source with the shared library prepended, made once per family (the
+    /// launchers ask for it on every launch; [`super::GpuContext::kernel`] reads it only once).
+    pub fn with_lib(family: &'static str) -> &'static str {
+        static MADE: std::sync::Mutex<Vec<(usize, usize, &'static str)>> = std::sync::Mutex::new(Vec::new());
+        let key = (family.as_ptr() as usize, family.len());
+        let mut made = MADE.lock().expect("shader sources poisoned");
+        if let Some(&(_, _, s)) = made.iter().find(|&&(p, n, _)| (p, n) == key) {
+            return s;
+        }
+        let s: &'static str = Box::leak(prepend_lib(family).into_boxed_str());
+        made.push((key.0, key.1, s));
+        s
     }
 
     pub const UTIL: &str = include_str!("../../../shaders/util.wgsl");
