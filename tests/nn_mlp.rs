@@ -379,6 +379,24 @@ fn bench_nn_writes_its_json() {
     }
     assert!(v["gemm_reference_gflops"].as_f64().unwrap() > 0.0);
     assert_eq!(v["cpu_vs_gemm_reference"].as_array().unwrap().len(), 2);
+    assert!(v["launch_overhead"].as_array().unwrap().is_empty(), "the cpu backend launches nothing");
+    // On wgpu (lavapipe here) it also measures the host's cost per launch and a round trip; the
+    // launches' sum is checked inside, so a lost launch is an error.
+    let out = dir.path().join("nn-wgpu.json");
+    let st = std::process::Command::new(env!("CARGO_BIN_EXE_pii-bake"))
+        .args(["--backend", "wgpu", "bench", "nn", "--batches", "64", "--iters", "1", "--gemm-rows", "64"])
+        .args(["--networks", "fast", "--launches", "200", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&out).unwrap()).unwrap();
+    let l = &v["launch_overhead"][0];
+    assert_eq!(l["launches"], 200);
+    for k in ["host_us_per_launch", "wall_us_per_launch", "round_trip_us"] {
+        let x = l[k].as_f64().unwrap();
+        assert!(x > 0.0 && x.is_finite(), "{k} = {x}");
+    }
     // A bad network name is an error, not a panic.
     let st = std::process::Command::new(env!("CARGO_BIN_EXE_pii-bake"))
         .args([
