@@ -291,4 +291,25 @@ fn hash_grid_field_on_wgpu_matches_cpu_and_follows_parameter_changes() {
         pii_bake::testing::assert_close("outputs after a parameter change", &b, &a, tol);
         assert!(before.iter().zip(&b).any(|(u, v)| u != v), "the wgpu field did not see the changed parameters");
     }
+    // Pinned parameters are found by address while borrowed; other parameters (a changed copy)
+    // are still compared, and once the pin is dropped and the parameters change, the device
+    // copy follows them.
+    let pinned_out = {
+        let _pin = field.pin(&gpu, &p).unwrap();
+        let pinned = field.eval(&gpu, &p, &x).unwrap();
+        let mut q = p.clone();
+        q[0] += 0.5;
+        q[ne] += 0.5;
+        let (a, b) = (field.eval(&cpu, &q, &x).unwrap(), field.eval(&gpu, &q, &x).unwrap());
+        pii_bake::testing::assert_close("a changed copy while another is pinned", &b, &a, tol);
+        assert_eq!(field.eval(&gpu, &p, &x).unwrap(), pinned, "the pinned parameters again");
+        pinned
+    };
+    pii_bake::testing::assert_close("pinned", &pinned_out, &field.eval(&cpu, &p, &x).unwrap(), tol);
+    p[ne - 1] -= 0.25;
+    let last = p.len() - 1;
+    p[last] -= 0.25;
+    let (a, b) = (field.eval(&cpu, &p, &x).unwrap(), field.eval(&gpu, &p, &x).unwrap());
+    pii_bake::testing::assert_close("outputs after the pin and a change", &b, &a, tol);
+    assert!(pinned_out.iter().zip(&b).any(|(u, v)| u != v), "a dropped pin left a stale device copy");
 }

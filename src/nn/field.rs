@@ -355,6 +355,23 @@ pub struct SdfField {
     /// The parameters' copy on the device, re-uploaded only when their bytes change: tracing
     /// evaluates the field dozens of times per training step with the same parameters.
     mirror: Mutex<Vec<(Vec<f32>, GpuBuffer)>>,
+    /// Parameter slices (address, length) whose device copy is known current without comparing
+    /// them, for as long as a [`PinnedParams`] borrows them (see [`SdfField::pin`]).
+    pins: Mutex<Vec<(usize, usize, GpuBuffer)>>,
+}
+
+/// A borrow of an [`SdfField`]'s parameters during which their device copy is used without
+/// comparing bytes: the borrow keeps them from changing, so the address and length name the
+/// same values. Dropping it (before the optimiser writes them) forgets the pin.
+pub struct PinnedParams<'a> {
+    field: &'a SdfField,
+    _params: &'a [f32],
+}
+
+impl Drop for PinnedParams<'_> {
+    fn drop(&mut self) {
+        self.field.pins.lock().expect("field pins poisoned").clear();
+    }
 }
 
 impl SdfField {
@@ -368,7 +385,7 @@ impl SdfField {
         config.encoding.encoding_config().validate(3)?;
         let encoder: Box<dyn Encoder> = Box::new(config.encoding.encoder());
         let mlp = Mlp::new(config.mlp_config(encoder.out_dim()))?;
-        Ok(Self { config, encoder, mlp, mirror: Mutex::new(Vec::new()) })
+        Ok(Self { config, encoder, mlp, mirror: Mutex::new(Vec::new()), pins: Mutex::new(Vec::new()) })
     }
 
     /// A field from an already-built encoder (e.g. a hash grid from `nn::encoding`).
@@ -377,7 +394,7 @@ impl SdfField {
         encoder: Box<dyn Encoder>,
     ) -> Result<Self, BackendError> {
         let mlp = Mlp::new(config.mlp_config(encoder.out_dim()))?;
-        Ok(Self { config, encoder, mlp, mirror: Mutex::new(Vec::new()) })
+        Ok(Self { config, encoder, mlp, mirror: Mutex::new(Vec::new()), pins: Mutex::new(Vec::new()) })
     }
 
     pub fn num_params(&self) -> usize {
@@ -440,6 +457,10 @@ impl SdfField {
         let Some(g) = backend.gpu().filter(|_| !params.is_empty()) else {
             return backend.upload(params);
         };
+        let key = (params.as_ptr() as usize, params.len());
+        if let Some((.., t)) = self.pins.lock().expect("field pins poisoned").iter().find(|(a, n, _)| (*a, *n) == key) {
+            return Tensor::Device(t.clone());
+        }
         let mut m = self.mirror.lock().expect("field mirror poisoned");
         if let Some((_, b)) = m.iter().find(|(host, _)| crate::util::same_bits(host, params)) {
             return Tensor::Device(b.clone());
@@ -451,6 +472,23 @@ impl SdfField {
         }
         m.push((params.to_vec(), b.clone()));
         Tensor::Device(b)
+    }
+
+    /// Keep `params` (all of the field's) on the device, found by address while the returned
+    /// borrow lives: a training step evaluates the field a dozen times with the same parameters,
+    /// and comparing a large hash grid's bytes with their device copy each time cost more host
+    /// time than the launches. Without a GPU it does nothing. Pins do not nest: a second pin
+    /// replaces the first, and dropping either falls back to comparing (never a stale copy).
+    pub fn pin<'a>(&'a self, backend: &Backend, params: &'a [f32]) -> Result<PinnedParams<'a>, BackendError> {
+        if backend.gpu().is_some() {
+            let (pe, pm) = self.split(params)?;
+            let mut pins = Vec::new();
+            for p in [pe, pm].into_iter().filter(|p| !p.is_empty()) {
+                pins.push((p.as_ptr() as usize, p.len(), self.on_device(backend, p).device()?.clone()));
+            }
+            *self.pins.lock().expect("field pins poisoned") = pins;
+        }
+        Ok(PinnedParams { field: self, _params: params })
     }
 
     /// The MLP's input rows for points `x`, and the points as a device tensor where the

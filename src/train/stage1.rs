@@ -776,8 +776,24 @@ pub struct ModelSdf<'a> {
 }
 
 impl SdfBatch for ModelSdf<'_> {
+    /// The tracer's host evaluations (the sampler, the Newton step): on the device field where
+    /// there is one, whose parameters are already there ([`Model::sdf`] would compare them with
+    /// their device copy on every call).
     fn sdf(&self, points: &[f32]) -> Result<Vec<f32>, BackendError> {
-        self.model.sdf(self.backend, points)
+        let Some(d) = &self.device else {
+            return self.model.sdf(self.backend, points);
+        };
+        if points.len() % 3 != 0 {
+            return Err(BackendError::Shape(format!("sdf: {} coordinates are not points", points.len())));
+        }
+        const CHUNK: usize = 1 << 16;
+        let mut out = Vec::with_capacity(points.len() / 3);
+        for c in points.chunks(3 * CHUNK) {
+            let rows = d.eval(&d.gpu().upload_f32("sdf.points", c), c.len() / 3)?;
+            let od = d.out_dim();
+            out.extend(d.gpu().read_f32(&rows)?.chunks_exact(od).map(|r| r[0]));
+        }
+        Ok(out)
     }
 
     fn device(&self) -> Option<&dyn crate::render::DeviceSdf> {
@@ -1271,6 +1287,8 @@ impl Trainer {
             out_of_mask_min_sdf: self.cfg.out_of_mask_min_sdf,
         };
         let jitter = rng.random_range(0.0f32..1.0);
+        // The SDF's parameters stay put until `apply`: their device copy is used as is.
+        let pin = self.model.field.pin(backend, &self.model.sdf_params)?;
         let g = match volume {
             None => loss_and_grad(backend, &self.model, &self.cfg.trace, &batch, &eik, &ls, jitter)?,
             Some(sharpness) => {
@@ -1285,6 +1303,7 @@ impl Trainer {
                 volume_loss_and_grad(backend, &self.model, &batch, &vsm, &eik, &ls, &vs)?
             }
         };
+        drop(pin);
         let f = self.cfg.lr_factor(self.step);
         let warm = (self.step as f32) < self.cfg.radiance_warmup * self.cfg.iterations as f32;
         let (lf, lr) = (if warm { 0.0 } else { self.cfg.lr_field * f }, self.cfg.lr_radiance * f);
@@ -1328,6 +1347,7 @@ impl Trainer {
                 .collect();
             let target: Vec<f32> = pts.iter().map(|&p| grid.sample(p).clamp(-clamp, clamp)).collect();
             let w = self.cfg.eikonal_weight as f64;
+            let pin = self.model.field.pin(backend, &self.model.sdf_params)?;
             let (l, d) = self.model.field.value_and_grad(backend, &self.model.sdf_params, bytemuck::cast_slice(&pts), |o| {
                 let mut g = FieldOutputGrads { sdf: vec![0.0; n], gradient: vec![0.0; 3 * n], feature: vec![] };
                 let mut l = 0.0;
@@ -1348,6 +1368,7 @@ impl Trainer {
                 }
                 (l, g)
             })?;
+            drop(pin);
             if !d.iter().all(|v| v.is_finite()) {
                 self.skipped += 1;
                 continue;

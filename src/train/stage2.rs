@@ -2140,6 +2140,8 @@ fn render_points_f64(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
 pub fn loss_and_grad_geometry(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch, w: &Stage2Weights, noise_seed: u64, sdf: &Stage1Model) -> Result<Stage2Grads, BackendError> {
     let b = batch.len();
     let field = &sdf.field;
+    // The SDF's parameters stay put for the step: their device copy is used as is.
+    let _pin = field.pin(backend, &sdf.sdf_params)?;
     // Secondary hits (their SDF gives each boundary light's offset) and uniform eikonal points
     // (drawn from the step's seed) join the surface points in one field evaluation, whose
     // outputs feed the whole step: the SDF is evaluated once per point.
