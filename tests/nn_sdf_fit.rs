@@ -297,6 +297,11 @@ fn hash_grid_field_on_wgpu_matches_cpu_and_follows_parameter_changes() {
     let pinned_out = {
         let _pin = field.pin(&gpu, &p).unwrap();
         let pinned = field.eval(&gpu, &p, &x).unwrap();
+        // Pins nest: an inner pin of the same parameters comes and goes.
+        {
+            let _inner = field.pin(&gpu, &p).unwrap();
+            assert_eq!(field.eval(&gpu, &p, &x).unwrap(), pinned, "under two pins");
+        }
         let mut q = p.clone();
         q[0] += 0.5;
         q[ne] += 0.5;

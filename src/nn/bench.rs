@@ -77,7 +77,7 @@ fn thread_cpu_seconds() -> Option<f64> {
     Some(s.split_whitespace().next()?.parse::<f64>().ok()? * 1e-9)
 }
 
-fn launch_cost(g: &crate::backend::GpuContext, launches: usize, iters: usize) -> anyhow::Result<LaunchCost> {
+fn launch_cost(g: &crate::backend::GpuContext, device: String, launches: usize, iters: usize) -> anyhow::Result<LaunchCost> {
     use crate::backend::gpu::util_kernels::axpy;
     let n = launches.max(1);
     let (x, y) = (g.upload_f32("bench.x", &[1.0; 64]), g.zeros_f32("bench.y", 64));
@@ -111,7 +111,7 @@ fn launch_cost(g: &crate::backend::GpuContext, launches: usize, iters: usize) ->
         anyhow::bail!("launch benchmark: y = {} after the launches, expected {want}", v[0]);
     }
     Ok(LaunchCost {
-        device: String::new(),
+        device,
         launches: n,
         host_us_per_launch: host * 1e6,
         host_clock: clock,
@@ -288,7 +288,7 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
     let mut launch = Vec::new();
     for b in &backends {
         if let Some(g) = b.gpu() {
-            let c = LaunchCost { device: b.describe(), ..launch_cost(g, args.launches, args.iters)? };
+            let c = launch_cost(g, b.describe(), args.launches, args.iters)?;
             ctx.say(format!(
                 "launch overhead on {}: {:.2} µs host per launch ({}), {:.2} µs wall, round trip {:.0} µs",
                 c.device, c.host_us_per_launch, c.host_clock, c.wall_us_per_launch, c.round_trip_us

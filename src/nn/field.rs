@@ -356,21 +356,28 @@ pub struct SdfField {
     /// evaluates the field dozens of times per training step with the same parameters.
     mirror: Mutex<Vec<(Vec<f32>, GpuBuffer)>>,
     /// Parameter slices (address, length) whose device copy is known current without comparing
-    /// them, for as long as a [`PinnedParams`] borrows them (see [`SdfField::pin`]).
+    /// them, for as long as a [`PinnedParams`] borrows them (see [`SdfField::pin`]); one entry
+    /// per live pin.
     pins: Mutex<Vec<(usize, usize, GpuBuffer)>>,
 }
 
 /// A borrow of an [`SdfField`]'s parameters during which their device copy is used without
 /// comparing bytes: the borrow keeps them from changing, so the address and length name the
-/// same values. Dropping it (before the optimiser writes them) forgets the pin.
+/// same values. Dropping it (before the optimiser writes them) forgets its pins.
 pub struct PinnedParams<'a> {
     field: &'a SdfField,
     _params: &'a [f32],
+    keys: Vec<(usize, usize)>,
 }
 
 impl Drop for PinnedParams<'_> {
     fn drop(&mut self) {
-        self.field.pins.lock().expect("field pins poisoned").clear();
+        let mut pins = self.field.pins.lock().expect("field pins poisoned");
+        for k in &self.keys {
+            if let Some(i) = pins.iter().position(|(a, n, _)| (*a, *n) == *k) {
+                pins.remove(i);
+            }
+        }
     }
 }
 
@@ -477,18 +484,19 @@ impl SdfField {
     /// Keep `params` (all of the field's) on the device, found by address while the returned
     /// borrow lives: a training step evaluates the field a dozen times with the same parameters,
     /// and comparing a large hash grid's bytes with their device copy each time cost more host
-    /// time than the launches. Without a GPU it does nothing. Pins do not nest: a second pin
-    /// replaces the first, and dropping either falls back to comparing (never a stale copy).
+    /// time than the launches. Without a GPU it does nothing. Pins nest: each borrow removes
+    /// only its own when dropped.
     pub fn pin<'a>(&'a self, backend: &Backend, params: &'a [f32]) -> Result<PinnedParams<'a>, BackendError> {
+        let mut keys = Vec::new();
         if backend.gpu().is_some() {
             let (pe, pm) = self.split(params)?;
-            let mut pins = Vec::new();
             for p in [pe, pm].into_iter().filter(|p| !p.is_empty()) {
-                pins.push((p.as_ptr() as usize, p.len(), self.on_device(backend, p).device()?.clone()));
+                let t = self.on_device(backend, p).device()?.clone();
+                keys.push((p.as_ptr() as usize, p.len()));
+                self.pins.lock().expect("field pins poisoned").push((p.as_ptr() as usize, p.len(), t));
             }
-            *self.pins.lock().expect("field pins poisoned") = pins;
         }
-        Ok(PinnedParams { field: self, _params: params })
+        Ok(PinnedParams { field: self, _params: params, keys })
     }
 
     /// The MLP's input rows for points `x`, and the points as a device tensor where the

@@ -692,9 +692,11 @@ impl Model {
 
     /// The SDF as the tracer reads it: [`Model::sdf`]'s host batches and, where the field
     /// encodes on the device (the fast preset on wgpu), the same field evaluated there, so
-    /// `render::trace` runs its loops on the device.
+    /// `render::trace` runs its loops on the device. The parameters are pinned on the device
+    /// while it lives, so neither path compares them with their device copy per call.
     pub fn sdf_batch<'a>(&'a self, backend: &'a Backend) -> Result<ModelSdf<'a>, BackendError> {
-        Ok(ModelSdf { model: self, backend, device: self.field.on_device_eval(backend, &self.sdf_params)? })
+        let pin = self.field.pin(backend, &self.sdf_params)?;
+        Ok(ModelSdf { model: self, backend, device: self.field.on_device_eval(backend, &self.sdf_params)?, _pin: pin })
     }
 
     fn radiance_input(&self, x: &[[f32; 3]], dirs: &[[f32; 3]], o: &FieldOutputs, range: std::ops::Range<usize>) -> Vec<f32> {
@@ -773,27 +775,12 @@ pub struct ModelSdf<'a> {
     model: &'a Model,
     backend: &'a Backend,
     device: Option<crate::nn::field::DeviceField<'a>>,
+    _pin: crate::nn::field::PinnedParams<'a>,
 }
 
 impl SdfBatch for ModelSdf<'_> {
-    /// The tracer's host evaluations (the sampler, the Newton step): on the device field where
-    /// there is one, whose parameters are already there ([`Model::sdf`] would compare them with
-    /// their device copy on every call).
     fn sdf(&self, points: &[f32]) -> Result<Vec<f32>, BackendError> {
-        let Some(d) = &self.device else {
-            return self.model.sdf(self.backend, points);
-        };
-        if points.len() % 3 != 0 {
-            return Err(BackendError::Shape(format!("sdf: {} coordinates are not points", points.len())));
-        }
-        const CHUNK: usize = 1 << 16;
-        let mut out = Vec::with_capacity(points.len() / 3);
-        for c in points.chunks(3 * CHUNK) {
-            let rows = d.eval(&d.gpu().upload_f32("sdf.points", c), c.len() / 3)?;
-            let od = d.out_dim();
-            out.extend(d.gpu().read_f32(&rows)?.chunks_exact(od).map(|r| r[0]));
-        }
-        Ok(out)
+        self.model.sdf(self.backend, points)
     }
 
     fn device(&self) -> Option<&dyn crate::render::DeviceSdf> {

@@ -164,13 +164,13 @@ const PENDING_MAX: usize = 64;
 /// context's open encoder.
 enum Command {
     Dispatch {
-        label: String,
         pipeline: wgpu::ComputePipeline,
         bind_group: wgpu::BindGroup,
         /// The params block, padded to 16 bytes: written into the uniform arena when queued.
         uniform: Option<Vec<u8>>,
         groups: [u32; 3],
-        timing: Option<wgpu::QuerySet>,
+        /// A timed dispatch's queries and its own pass's label (the kernel's).
+        timing: Option<(wgpu::QuerySet, String)>,
     },
     Copy { src: wgpu::Buffer, dst: wgpu::Buffer, size: u64 },
     Resolve { queries: wgpu::QuerySet, dst: wgpu::Buffer },
@@ -185,13 +185,13 @@ impl Command {
         let Pending { encoder, pass, .. } = p;
         let enc = encoder.get_or_insert_with(|| ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("queued") }));
         match self {
-            Command::Dispatch { label, pipeline, bind_group, groups, timing, uniform } => {
+            Command::Dispatch { pipeline, bind_group, groups, timing, uniform } => {
                 let mut own;
                 let pass = match timing {
                     None => pass.get_or_insert_with(|| {
                         enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("queued"), timestamp_writes: None }).forget_lifetime()
                     }),
-                    Some(qs) => {
+                    Some((qs, label)) => {
                         *pass = None;
                         let timestamp_writes = Some(wgpu::ComputePassTimestampWrites {
                             query_set: qs,
@@ -795,12 +795,11 @@ impl Batch<'_> {
             return Err(BackendError::Validation { label: kernel.label.clone(), message: err.to_string() });
         }
         self.commands.push(Command::Dispatch {
-            label: kernel.label.clone(),
             pipeline: kernel.pipeline.clone(),
             bind_group: bg,
             uniform: ubytes,
             groups,
-            timing: timing.cloned(),
+            timing: timing.map(|qs| (qs.clone(), kernel.label.clone())),
         });
         ctx.count(&ctx.counters.dispatches, 1);
         Ok(())
