@@ -260,3 +260,10 @@ mod alloc_tests {
         assert!(v.iter().step_by(4096).all(|&x| x == 0.0));
     }
 }
+
+/// The calling thread's CPU time in seconds (Linux; None elsewhere), for host costs that other
+/// threads (a software adapter's, rayon's) would blur in wall time.
+pub fn thread_cpu_seconds() -> Option<f64> {
+    let s = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
+    Some(s.split_whitespace().next()?.parse::<f64>().ok()? * 1e-9)
+}

@@ -150,18 +150,18 @@ fn volume_rendering_learns_a_silhouette() {
 fn nan_gradients_never_reach_parameters() {
     let cfg = tiny_config();
     let mut t = Trainer::new(cfg).unwrap();
-    let before = (t.model.sdf_params.clone(), t.model.radiance_params.clone());
+    let before = (t.model().sdf_params.clone(), t.model().radiance_params.clone());
     let mut d_sdf = vec![0.1f32; before.0.len()];
     d_sdf[7] = f32::NAN;
     let (applied, _) = t.apply(d_sdf, vec![0.0; before.1.len()], 1e-2, 1e-2).unwrap();
     assert!(!applied);
     assert_eq!(t.skipped, 1);
-    assert_eq!(t.model.sdf_params, before.0);
-    assert_eq!(t.model.radiance_params, before.1);
+    assert_eq!(t.model().sdf_params, before.0);
+    assert_eq!(t.model().radiance_params, before.1);
     let (applied, _) = t.apply(vec![0.1; before.0.len()], vec![f32::INFINITY; before.1.len()], 1e-2, 1e-2).unwrap();
-    assert!(!applied && t.skipped == 2 && t.model.sdf_params == before.0);
+    assert!(!applied && t.skipped == 2 && t.model().sdf_params == before.0);
     let (applied, _) = t.apply(vec![0.1; before.0.len()], vec![0.0; before.1.len()], 1e-2, 1e-2).unwrap();
-    assert!(applied && t.model.sdf_params != before.0);
+    assert!(applied && t.model().sdf_params != before.0);
 }
 
 fn lavapipe() -> Backend {
@@ -318,7 +318,7 @@ fn learn_a_silhouette_with(tracing: pii_bake::render::TraceConfig, volume: bool)
     };
     let eval = |t: &Trainer, rng: &mut rand::rngs::StdRng| {
         let bt = make_batch(rng);
-        let f = |p: &[f32]| t.model.sdf(&b, p);
+        let f = |p: &[f32]| t.model().sdf(&b, p);
         let r = trace(&f, &bt.rays, &t.cfg.trace).unwrap();
         (0..bt.rays.len()).filter(|&i| r.hit[i] != (bt.mask[i] > 0.5)).count()
     };
@@ -328,10 +328,10 @@ fn learn_a_silhouette_with(tracing: pii_bake::render::TraceConfig, volume: bool)
         let ls = LossSettings { alpha: 50.0, eikonal_weight: 0.1, mask_weight: 100.0, eikonal_points: 64, mask_samples: 16, near_surface_sigma: 0.02, smoothness_weight: 0.0, normal_gradient_scale: 1.0, colour_moves_point: true, surface_eikonal: true, out_of_mask_min_sdf: false };
         let g = if volume {
             let vs = VolumeSettings { sharpness: 30.0, coarse: 32, fine: 16, mask_weight: 1.0, bound: 1.0 };
-            let vsm = volume_samples(&b, &t.model, &bt, &vs, 0.5).unwrap();
-            volume_loss_and_grad(&b, &t.model, &bt, &vsm, &EIK, &ls, &vs).unwrap()
+            let vsm = volume_samples(&b, t.model(), &bt, &vs, 0.5).unwrap();
+            volume_loss_and_grad(&b, t.model(), &bt, &vsm, &EIK, &ls, &vs).unwrap()
         } else {
-            loss_and_grad(&b, &t.model, &t.cfg.trace, &bt, &EIK, &ls, 0.5).unwrap()
+            loss_and_grad(&b, t.model(), &t.cfg.trace, &bt, &EIK, &ls, 0.5).unwrap()
         };
         assert!(g.stats.loss.is_finite(), "step {step}: {:?}", g.stats);
         let (applied, _) = t.apply(g.d_sdf, g.d_radiance, 1e-2, 1e-2).unwrap();
@@ -339,7 +339,7 @@ fn learn_a_silhouette_with(tracing: pii_bake::render::TraceConfig, volume: bool)
     }
     let wrong_after = eval(&t, &mut pii_bake::util::rng(99));
     assert!(wrong_after * 2 < wrong_before, "{:?} sampler, volume {volume}, silhouette errors: {wrong_before} before, {wrong_after} after 25 steps", t.cfg.trace.local_samples);
-    assert!(t.model.sdf_params.iter().all(|v| v.is_finite()));
+    assert!(t.model().sdf_params.iter().all(|v| v.is_finite()));
 }
 
 
@@ -351,15 +351,7 @@ fn hull_fit_with_a_decaying_rate_lands_on_the_target_surface() {
     // than a constant rate does (its last steps jitter the fine levels by a full step each).
     let b = Backend::cpu();
     let res = 32;
-    let mut grid = pii_bake::train::hull::Grid3::new(res, 1.0, 0.0);
-    for k in 0..res {
-        for j in 0..res {
-            for i in 0..res {
-                let c = grid.centre(i, j, k);
-                grid.data[(k * res + j) * res + i] = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt() - 0.5;
-            }
-        }
-    }
+    let grid = sphere_grid(res);
     let fit = |lr_final: f32| {
         let mut cfg = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Hull, &[], 0, 1);
         cfg.field.encoding = FieldEncoding::HashGrid { levels: 6, features_per_level: 2, log2_table_size: 14, base_resolution: 8, growth: 1.6 };
@@ -368,7 +360,7 @@ fn hull_fit_with_a_decaying_rate_lands_on_the_target_surface() {
         cfg.hull_fit_lr_final = lr_final;
         let mut t = Trainer::new(cfg).unwrap();
         let loss = t.fit_to_grid(&b, &grid, 150, |_, _| {}).unwrap();
-        assert!(loss.is_finite() && t.model.sdf_params.iter().all(|v| v.is_finite()));
+        assert!(loss.is_finite() && t.model().sdf_params.iter().all(|v| v.is_finite()));
         // Mean |f| at points on the target sphere.
         let mut rng = pii_bake::util::rng(3);
         let pts: Vec<f32> = (0..500)
@@ -379,8 +371,8 @@ fn hull_fit_with_a_decaying_rate_lands_on_the_target_surface() {
                 v.map(|a| 0.5 * a / n)
             })
             .collect();
-        let f = t.model.sdf(&b, &pts).unwrap();
-        let inside = t.model.sdf(&b, &[0.0, 0.0, 0.0, 0.9, 0.9, 0.9]).unwrap();
+        let f = t.model().sdf(&b, &pts).unwrap();
+        let inside = t.model().sdf(&b, &[0.0, 0.0, 0.0, 0.9, 0.9, 0.9]).unwrap();
         assert!(inside[0] < 0.0 && inside[1] > 0.0, "{inside:?}");
         f.iter().map(|v| v.abs() as f64).sum::<f64>() / f.len() as f64
     };
@@ -493,4 +485,139 @@ fn appearance_grid_gradient_matches_central_differences() {
     assert_matches_central_differences(&cfg, "radiance", &g.d_radiance, &idx, &loss);
     let sdf_idx: Vec<usize> = (0..model.sdf_params.len()).step_by((model.sdf_params.len() / 30).max(1)).collect();
     assert_matches_central_differences(&cfg, "sdf", &g.d_sdf, &sdf_idx, &loss);
+}
+
+/// A `res`³ grid of a sphere's signed distance (radius 0.5) over the bounding cube.
+fn sphere_grid(res: usize) -> pii_bake::train::hull::Grid3 {
+    let mut grid = pii_bake::train::hull::Grid3::new(res, 1.0, 0.0);
+    for k in 0..res {
+        for j in 0..res {
+            for i in 0..res {
+                let c = grid.centre(i, j, k);
+                grid.data[(k * res + j) * res + i] = (c[0] * c[0] + c[1] * c[1] + c[2] * c[2]).sqrt() - 0.5;
+            }
+        }
+    }
+    grid
+}
+
+#[test]
+fn the_device_optimiser_follows_the_host_one_without_moving_the_grid_across_the_bus() {
+    // The hull fit on lavapipe, with the SDF's parameters and Adam moments on the device and
+    // with them on the host: the same field comes out, while the device path never reads a
+    // parameter-sized gradient back or uploads the parameters; the host copy is refreshed only
+    // on request and checkpoints hold the device's values; a non-finite gradient is skipped.
+    let gpu = lavapipe();
+    let g = gpu.gpu().unwrap().clone();
+    let grid = sphere_grid(24);
+    let config = |device_optimiser: bool| {
+        let mut cfg = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Hull, &[], 0, 1);
+        cfg.field.encoding = FieldEncoding::HashGrid { levels: 6, features_per_level: 2, log2_table_size: 16, base_resolution: 8, growth: 2.0 };
+        cfg.field.widths = vec![16];
+        cfg.hull_fit_points = 512;
+        cfg.device_optimiser = device_optimiser;
+        cfg
+    };
+    let steps = 6;
+    let mut fitted = Vec::new();
+    let mut per_step = Vec::new();
+    for device in [false, true] {
+        let mut t = Trainer::new(config(device)).unwrap();
+        // The first step uploads the device path's parameters and moments once.
+        t.fit_to_grid(&gpu, &grid, 1, |_, _| {}).unwrap();
+        let c0 = g.counters();
+        let loss = t.fit_to_grid(&gpu, &grid, steps, |_, _| {}).unwrap();
+        per_step.push(g.counters().per(&c0, steps));
+        assert!(loss.is_finite() && t.skipped == 0, "device {device}: loss {loss}, skipped {}", t.skipped);
+        assert_eq!(t.host_is_stale(), device);
+        t.sync_host().unwrap();
+        assert!(!t.host_is_stale());
+        fitted.push(t);
+    }
+    let bytes = 4.0 * fitted[0].model().sdf_params.len() as f64;
+    assert!(per_step[0].read_bytes >= bytes && per_step[0].upload_bytes >= 0.5 * bytes, "host path per step: {:?} ({bytes} bytes of parameters)", per_step[0]);
+    assert!(per_step[1].read_bytes < 0.25 * bytes && per_step[1].upload_bytes < 0.25 * bytes, "device path per step: {:?} ({bytes} bytes of parameters)", per_step[1]);
+    // The same field within rounding (the hash grid's backward sums with atomics, in any order).
+    let mut rng = pii_bake::util::rng(4);
+    let pts: Vec<f32> = (0..900).map(|_| rand::Rng::random_range(&mut rng, -0.8f32..0.8)).collect();
+    let init = Model::new(&config(true)).unwrap();
+    let f0 = init.sdf(&gpu, &pts).unwrap();
+    let (fh, fd) = (fitted[0].model().sdf(&gpu, &pts).unwrap(), fitted[1].model().sdf(&gpu, &pts).unwrap());
+    let moved = fd.iter().zip(&f0).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    let diff = fd.iter().zip(&fh).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    assert!(moved > 0.05 && diff < 1e-3 * moved.max(1.0), "fit moved the field by up to {moved}; device vs host differ by up to {diff}");
+    // A checkpoint holds the device's values.
+    let mut dev = fitted.pop().unwrap();
+    dev.fit_to_grid(&gpu, &grid, 2, |_, _| {}).unwrap();
+    assert!(dev.host_is_stale());
+    let dir = tempfile::tempdir().unwrap();
+    dev.save(dir.path(), "sphere").unwrap();
+    let (loaded, _) = Trainer::load(dir.path(), Some("sphere")).unwrap();
+    assert!(!dev.host_is_stale());
+    assert_eq!(loaded.model().sdf_params, dev.model().sdf_params);
+    // A NaN in a parameter makes every gradient non-finite: each step is skipped on the device and
+    // nothing else moves.
+    let last = dev.model().sdf_params.len() - 1;
+    dev.model_mut().unwrap().sdf_params[last] = f32::NAN;
+    let before: Vec<u32> = dev.model().sdf_params.iter().map(|v| v.to_bits()).collect();
+    let skipped = dev.skipped;
+    dev.fit_to_grid(&gpu, &grid, 3, |_, _| {}).unwrap();
+    assert_eq!(dev.skipped, skipped + 3);
+    dev.sync_host().unwrap();
+    assert_eq!(dev.model().sdf_params.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), before);
+    // A parameter-free encoding (the paper preset's kind): every parameter is the MLP's.
+    let mut cfg = tiny_config();
+    cfg.hull_fit_points = 256;
+    let mut t = Trainer::new(cfg).unwrap();
+    let init = t.model().sdf_params.clone();
+    t.fit_to_grid(&gpu, &grid, 3, |_, _| {}).unwrap();
+    assert!(t.host_is_stale() && t.skipped == 0);
+    t.sync_host().unwrap();
+    assert!(t.model().sdf_params.iter().all(|v| v.is_finite()) && t.model().sdf_params != init);
+}
+
+#[test]
+fn a_wgpu_training_step_keeps_the_sdf_on_the_device_and_a_checkpoint_resumes_it() {
+    // Photometric steps on the bundled example (read at 1/4, a tiny field, 64 rays) on lavapipe:
+    // the device optimiser's steps follow the host optimiser's, a checkpoint taken between steps
+    // carries the device's parameters and Adam moments, and the resumed run's next step is the
+    // straight run's.
+    use pii_bake::scene::{Downscale, ReadOptions};
+    use pii_bake::train::stage1::TrainData;
+    let gpu = lavapipe();
+    let ex = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/example");
+    let scene = pii_bake::scene::load(&ex, &ReadOptions { downscale: Downscale::By(4), keep_all_views: false }).unwrap();
+    let (views, _) = pii_bake::train::cli::train_views(&scene);
+    let data = TrainData::new(&views, 1.0).unwrap();
+    let config = |device_optimiser: bool| {
+        let mut cfg = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Sphere, &views, 0, 4);
+        cfg.field.encoding = FieldEncoding::HashGrid { levels: 4, features_per_level: 2, log2_table_size: 14, base_resolution: 8, growth: 2.0 };
+        cfg.field.widths = vec![16];
+        cfg.rays = 64;
+        cfg.eikonal_points = 64;
+        cfg.radiance_warmup = 0.0;
+        cfg.device_optimiser = device_optimiser;
+        cfg
+    };
+    let run = |t: &mut Trainer, steps: usize| (0..steps).map(|_| t.train_step(&gpu, &data).unwrap()).collect::<Vec<_>>();
+    let mut host = Trainer::new(config(false)).unwrap();
+    let mut dev = Trainer::new(config(true)).unwrap();
+    let (sh, sd) = (run(&mut host, 3), run(&mut dev, 3));
+    assert!(dev.host_is_stale() && !host.host_is_stale());
+    for (a, b) in sh.iter().zip(&sd) {
+        assert!(a.applied && b.applied && (a.loss - b.loss).abs() <= 1e-4 * a.loss, "step {}: loss host {} vs device {}", a.step, a.loss, b.loss);
+    }
+    let dir = tempfile::tempdir().unwrap();
+    dev.save(dir.path(), "example").unwrap();
+    host.sync_host().unwrap();
+    pii_bake::testing::assert_close("SDF after 3 steps, device vs host optimiser", &dev.model().sdf_params, &host.model().sdf_params, pii_bake::testing::Tolerance::new(1e-3, 1e-5));
+    let (mut resumed, _) = Trainer::load(dir.path(), Some("example")).unwrap();
+    let (a, b) = (run(&mut dev, 2), run(&mut resumed, 2));
+    for (a, b) in a.iter().zip(&b) {
+        assert!((a.loss - b.loss).abs() <= 1e-5 * a.loss, "step {}: straight {} vs resumed {}", a.step, a.loss, b.loss);
+    }
+    dev.sync_host().unwrap();
+    resumed.sync_host().unwrap();
+    // Without the moments the resumed step would move each entry by a full learning rate.
+    pii_bake::testing::assert_close("SDF, straight vs resumed", &resumed.model().sdf_params, &dev.model().sdf_params, pii_bake::testing::Tolerance::new(1e-4, 1e-6));
 }

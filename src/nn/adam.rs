@@ -313,50 +313,8 @@ impl Backend {
         }
         let max_step =
             |items: &[AdamItem<'_>]| items.iter().map(|it| it.state.step).max().unwrap_or(0);
-        // Gradient statistics over the group: squared norm (summed in f64) and non-finite count.
-        let (sumsq, non_finite) = match self {
-            Backend::Cpu(_) => {
-                let grads = items
-                    .iter()
-                    .map(|it| it.grads.host())
-                    .collect::<Result<Vec<_>, _>>()?;
-                grad_stats_host(&grads)
-            }
-            Backend::Gpu(g) => {
-                let groups: Vec<usize> = items
-                    .iter()
-                    .map(|it| {
-                        it.params
-                            .len()
-                            .div_ceil(STATS_WG as usize)
-                            .clamp(1, MAX_STATS_GROUPS)
-                    })
-                    .collect();
-                let total: usize = groups.iter().sum();
-                let partials = g.zeros_f32("adam.partials", 2 * total.max(1));
-                let src = shaders::with_lib(ADAM_WGSL);
-                let spec = KernelSpec::new(true, &[Access::Read, Access::ReadWrite]);
-                let k = g.kernel("adam", &src, "grad_stats", &spec)?;
-                let mut batch = g.batch("adam.grad_stats");
-                let mut offset = 0;
-                for (it, &gr) in items.iter().zip(&groups) {
-                    let p = AdamParams {
-                        n: it.params.len() as u32,
-                        n_threads: gr as u32 * STATS_WG,
-                        partial_offset: offset as u32,
-                        ..bytemuck::Zeroable::zeroed()
-                    };
-                    let binds = [it.grads.device()?.into(), (&partials).into()];
-                    batch.dispatch(&k, Some(bytemuck::bytes_of(&p)), &binds, [gr as u32, 1, 1])?;
-                    offset += gr;
-                }
-                batch.submit()?;
-                let host = g.read_f32(&partials)?;
-                let sumsq: f64 = host.chunks_exact(2).map(|c| c[0] as f64).sum();
-                let nf: f64 = host.chunks_exact(2).map(|c| c[1] as f64).sum();
-                (sumsq, nf as u64)
-            }
-        };
+        let grads: Vec<&Tensor> = items.iter().map(|it| it.grads).collect();
+        let (sumsq, non_finite) = self.adam_grad_stats(&grads)?;
         let norm = sumsq.sqrt();
         if non_finite > 0 || !norm.is_finite() {
             return Ok(AdamStepReport {
@@ -372,6 +330,71 @@ impl Backend {
                 lr,
             });
         }
+        let scale = self.adam_apply(cfg, items, lr, norm)?;
+        Ok(AdamStepReport {
+            applied: true,
+            grad_norm: norm as f32,
+            clip_scale: scale,
+            non_finite: 0,
+            step: max_step(items),
+            lr,
+        })
+    }
+
+    /// Gradient statistics over several tensors, in order: the squared L2 norm (summed in f64)
+    /// and the number of non-finite values. On wgpu one launch per tensor and one wait for a few
+    /// partial sums, however large the tensors: the gradient itself never leaves the device.
+    pub fn adam_grad_stats(&self, grads: &[&Tensor]) -> Result<(f64, u64), BackendError> {
+        match self {
+            Backend::Cpu(_) => {
+                let host = grads.iter().map(|t| t.host()).collect::<Result<Vec<_>, _>>()?;
+                Ok(grad_stats_host(&host))
+            }
+            Backend::Gpu(g) => {
+                let groups: Vec<usize> = grads
+                    .iter()
+                    .map(|t| t.len().div_ceil(STATS_WG as usize).clamp(1, MAX_STATS_GROUPS))
+                    .collect();
+                let total: usize = groups.iter().sum();
+                let partials = g.zeros_f32("adam.partials", 2 * total.max(1));
+                let src = shaders::with_lib(ADAM_WGSL);
+                let spec = KernelSpec::new(true, &[Access::Read, Access::ReadWrite]);
+                let k = g.kernel("adam", src, "grad_stats", &spec)?;
+                let mut batch = g.batch("adam.grad_stats");
+                let mut offset = 0;
+                for (t, &gr) in grads.iter().zip(&groups) {
+                    if t.is_empty() {
+                        continue;
+                    }
+                    let p = AdamParams {
+                        n: t.len() as u32,
+                        n_threads: gr as u32 * STATS_WG,
+                        partial_offset: offset as u32,
+                        ..bytemuck::Zeroable::zeroed()
+                    };
+                    let binds = [t.device()?.into(), (&partials).into()];
+                    batch.dispatch(&k, Some(bytemuck::bytes_of(&p)), &binds, [gr as u32, 1, 1])?;
+                    offset += gr;
+                }
+                batch.submit()?;
+                let host = g.read_f32(&partials)?;
+                let sumsq: f64 = host.chunks_exact(2).map(|c| c[0] as f64).sum();
+                let nf: f64 = host.chunks_exact(2).map(|c| c[1] as f64).sum();
+                Ok((sumsq, nf as u64))
+            }
+        }
+    }
+
+    /// The update of every item, whose gradients the caller has checked finite
+    /// ([`Backend::adam_grad_stats`]); `norm` is the norm clipping reads. Each item's step counter
+    /// advances. On wgpu the updates are queued, not waited for. Returns the clip scale.
+    pub fn adam_apply(
+        &self,
+        cfg: &AdamConfig,
+        items: &mut [AdamItem<'_>],
+        lr: f32,
+        norm: f64,
+    ) -> Result<f32, BackendError> {
         let mut scale = 1.0;
         match self {
             Backend::Cpu(_) => {
@@ -397,15 +420,16 @@ impl Backend {
                         Access::ReadWrite,
                     ],
                 );
-                let kern = g.kernel("adam", &src, "adam_update", &spec)?;
+                let kern = g.kernel("adam", src, "adam_update", &spec)?;
                 let mut batch = g.batch("adam.update");
-                for it in items.iter() {
+                for it in items.iter_mut() {
                     let n = it.params.len();
+                    let k = step_consts(cfg, lr, norm, it.state.step + 1);
+                    scale = k.scale;
+                    it.state.step += 1;
                     if n == 0 {
                         continue;
                     }
-                    let k = step_consts(cfg, lr, norm, it.state.step + 1);
-                    scale = k.scale;
                     let p = AdamParams {
                         n: n as u32,
                         lr: k.lr,
@@ -434,19 +458,9 @@ impl Backend {
                     )?;
                 }
                 batch.submit()?;
-                for it in items.iter_mut() {
-                    it.state.step += 1;
-                }
             }
         }
-        Ok(AdamStepReport {
-            applied: true,
-            grad_norm: norm as f32,
-            clip_scale: scale,
-            non_finite: 0,
-            step: max_step(items),
-            lr,
-        })
+        Ok(scale)
     }
 }
 

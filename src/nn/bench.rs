@@ -70,12 +70,7 @@ struct LaunchCost {
     round_trip_us: f64,
 }
 
-/// The calling thread's CPU time in seconds (Linux), for host costs that a software adapter's
-/// own threads would blur in wall time.
-fn thread_cpu_seconds() -> Option<f64> {
-    let s = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
-    Some(s.split_whitespace().next()?.parse::<f64>().ok()? * 1e-9)
-}
+use crate::util::thread_cpu_seconds;
 
 fn launch_cost(g: &crate::backend::GpuContext, device: String, launches: usize, iters: usize) -> anyhow::Result<LaunchCost> {
     use crate::backend::gpu::util_kernels::axpy;

@@ -487,15 +487,30 @@ impl SdfField {
     /// time than the launches. Without a GPU it does nothing. Pins nest: each borrow removes
     /// only its own when dropped.
     pub fn pin<'a>(&'a self, backend: &Backend, params: &'a [f32]) -> Result<PinnedParams<'a>, BackendError> {
-        let mut keys = Vec::new();
-        if backend.gpu().is_some() {
-            let (pe, pm) = self.split(params)?;
-            for p in [pe, pm].into_iter().filter(|p| !p.is_empty()) {
-                let t = self.on_device(backend, p).device()?.clone();
-                keys.push((p.as_ptr() as usize, p.len()));
-                self.pins.lock().expect("field pins poisoned").push((p.as_ptr() as usize, p.len(), t));
-            }
+        if backend.gpu().is_none() {
+            return Ok(PinnedParams { field: self, _params: params, keys: Vec::new() });
         }
+        let (pe, pm) = self.split(params)?;
+        let copies = [pe, pm].map(|p| self.on_device(backend, p));
+        self.pin_copies(params, [copies[0].device().ok(), copies[1].device().ok()])
+    }
+
+    /// Pin `params` to device copies the caller holds, `[encoding, MLP]`: for a trainer whose
+    /// optimiser updates the parameters on the device, so that the host slice is only the key
+    /// (its values may be older). Every evaluation must then find them by address: see
+    /// [`SdfField::evaluates_on_device`].
+    pub fn pin_device<'a>(&'a self, params: &'a [f32], copies: [&GpuBuffer; 2]) -> Result<PinnedParams<'a>, BackendError> {
+        self.pin_copies(params, copies.map(Some))
+    }
+
+    fn pin_copies<'a>(&'a self, params: &'a [f32], copies: [Option<&GpuBuffer>; 2]) -> Result<PinnedParams<'a>, BackendError> {
+        let (pe, pm) = self.split(params)?;
+        let pairs: Vec<(&[f32], &GpuBuffer)> = [pe, pm].into_iter().zip(copies).filter_map(|(p, t)| Some((p, t?))).filter(|(p, _)| !p.is_empty()).collect();
+        if let Some((p, t)) = pairs.iter().find(|(p, t)| t.len != p.len()) {
+            return Err(BackendError::Shape(format!("pinned copy: {} values for {} parameters", t.len, p.len())));
+        }
+        let keys: Vec<(usize, usize)> = pairs.iter().map(|(p, _)| (p.as_ptr() as usize, p.len())).collect();
+        self.pins.lock().expect("field pins poisoned").extend(pairs.iter().zip(&keys).map(|((_, t), k)| (k.0, k.1, (*t).clone())));
         Ok(PinnedParams { field: self, _params: params, keys })
     }
 
@@ -595,6 +610,26 @@ impl SdfField {
         x: &[f32],
         loss: impl FnOnce(&FieldOutputs) -> (f64, FieldOutputGrads),
     ) -> Result<(f64, Vec<f32>), BackendError> {
+        let (value, [d_enc, d_mlp]) = self.value_and_grad_tensors(backend, params, x, loss)?;
+        // The encoding's and the MLP's parameter gradients, read back with one wait.
+        let (mut d_params, d_mlp) = match (d_enc, d_mlp) {
+            (Tensor::Host(e), Tensor::Host(m)) => (e, m),
+            (e, m) => backend.to_vec2(&e, &m)?,
+        };
+        d_params.extend(d_mlp);
+        Ok((value, d_params))
+    }
+
+    /// [`SdfField::value_and_grad`] with the parameter gradient left where it was computed:
+    /// `[encoding, MLP]` (the two halves of the parameter vector), device tensors where the
+    /// encoding runs on the device, so an optimiser there needs no readback.
+    pub fn value_and_grad_tensors(
+        &self,
+        backend: &Backend,
+        params: &[f32],
+        x: &[f32],
+        loss: impl FnOnce(&FieldOutputs) -> (f64, FieldOutputGrads),
+    ) -> Result<(f64, [Tensor; 2]), BackendError> {
         let n = Self::check_points(x)?;
         let (pe, pm) = self.split(params)?;
         let pts = self.stencil(x);
@@ -636,25 +671,30 @@ impl SdfField {
             }
         }
         let grads = backend.mlp_backward(&self.mlp, &pm_t, &fwd, &backend.from_vec(d_out))?;
-        // The encoding's and the MLP's parameter gradients, read back with one wait.
-        let (mut d_params, d_mlp) = match (backend.gpu(), self.encoder.device_layout(), &pts_t) {
+        let d_enc = match (backend.gpu(), self.encoder.device_layout(), &pts_t) {
             (Some(g), Some(l), Some(pts_t)) => {
                 let m = pts.len() / 3;
                 let d_row = grads.d_input.device()?;
                 let d_enc = g.zeros_f32("field.d_enc", m * l.enc);
                 row_kernel(g, "split", &l, m, d_row, d_row, &d_enc, m * l.enc)?;
                 let grid = self.on_device(backend, pe);
-                let (dp, _) = backend.encoding_backward(&l.encoding, &grid, pts_t, m, &Tensor::Device(d_enc), false)?;
-                backend.to_vec2(&dp, &grads.d_params)?
+                backend.encoding_backward(&l.encoding, &grid, pts_t, m, &Tensor::Device(d_enc), false)?.0
             }
             _ if self.encoder.num_params() > 0 => {
                 let (d_enc, d_mlp) = backend.to_vec2(&grads.d_input, &grads.d_params)?;
-                (self.encoder.backward_params(pe, &pts, &d_enc), d_mlp)
+                let d = self.encoder.backward_params(pe, &pts, &d_enc);
+                return Ok((value, [Tensor::Host(d), Tensor::Host(d_mlp)]));
             }
-            _ => (Vec::new(), backend.to_vec(&grads.d_params)?),
+            _ => Tensor::Host(Vec::new()),
         };
-        d_params.extend(d_mlp);
-        Ok((value, d_params))
+        Ok((value, [d_enc, grads.d_params]))
+    }
+
+    /// Whether every evaluation on `backend` finds the parameters through their device copy
+    /// (a GPU, and an encoding that either has no parameters or runs there): only then can the
+    /// parameters' current values live on the device alone ([`SdfField::pin_device`]).
+    pub fn evaluates_on_device(&self, backend: &Backend) -> bool {
+        backend.gpu().is_some() && (self.encoder.num_params() == 0 || self.encoder.device_layout().is_some())
     }
 }
 

@@ -245,7 +245,7 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
             }
             let mut reached: Option<f64> = None;
             let mut record = |tr: &Trainer, wall: f64, points: &mut Vec<CurvePoint>| {
-                let f = |p: &[f32]| tr.model.sdf(&backend, p);
+                let f = |p: &[f32]| tr.model().sdf(&backend, p);
                 let (c, n) = measure(&backend, &f, &gt, gt_size, args.mesh_resolution);
                 if reached.is_none() && c <= target {
                     reached = Some(wall);
@@ -254,6 +254,7 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
                 points.push(CurvePoint { scene: sname.clone(), variant: name.clone(), backend: backend.name().into(), step: tr.step, wall_seconds: wall, chamfer_rel: c, normal_consistency: n });
                 (c, n)
             };
+            tr.sync_host()?;
             record(&tr, wall, &mut points);
             let mut train_secs = 0.0;
             let mut last = (f64::NAN, f64::NAN);
@@ -267,21 +268,24 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
                 wall += dt;
                 train_secs += dt;
                 if tr.step % args.eval_every == 0 {
+                    // Outside the timed part: the host copy of a wgpu run's SDF is read back.
+                    tr.sync_host()?;
                     last = record(&tr, wall, &mut points);
                 }
             }
             if tr.step % args.eval_every != 0 {
+                tr.sync_host()?;
                 last = record(&tr, wall, &mut points);
             }
             let held_views: Vec<&View> = if held.is_empty() { views.iter().take(4).copied().collect() } else { held.iter().take(8).copied().collect() };
-            let ev = evaluate_views(&backend, &tr.model, &cfg.trace, &held_views, 128 * 128)?;
+            let ev = evaluate_views(&backend, tr.model(), &cfg.trace, &held_views, 128 * 128)?;
             let shipped = super::cli::trained_mesh_config(&cfg.sizes, None, None);
             let cells = if args.asset_bound_cells.is_empty() { vec![shipped.bound_cells] } else { args.asset_bound_cells.clone() };
             let resolutions = if args.asset_resolution.is_empty() { vec![shipped.resolution] } else { args.asset_resolution.clone() };
             let mut assets = Vec::new();
             for &r in &resolutions {
                 for &c in &cells {
-                    let a = measure_asset(&backend, &tr.model, &crate::mesh::MeshConfig { resolution: r, bound_cells: c, ..shipped.clone() }, &gt, gt_size)?;
+                    let a = measure_asset(&backend, tr.model(), &crate::mesh::MeshConfig { resolution: r, bound_cells: c, ..shipped.clone() }, &gt, gt_size)?;
                     ctx.say(format!(
                         "{sname} {name}: asset mesh {r}^3, bound {c} cells: {} triangles, Chamfer {:.3}%, NC {:.4} (faces) / {:.4} (shading normals)",
                         a["triangles"], 100.0 * a["chamfer_rel"].as_f64().unwrap_or(f64::NAN), a["normal_consistency"].as_f64().unwrap_or(f64::NAN),

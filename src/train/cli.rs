@@ -276,22 +276,36 @@ pub fn on_mask(v: &View, p: usize) -> bool {
 
 /// What the held-out PSNR in the stage-1 and stage-2 reports is computed over.
 /// What a training loop's steps cost beyond their arithmetic, from a snapshot taken as the loop
-/// starts: the GPU's launches, waits and traffic (`gpu_per_step`, wgpu only) and the host's
-/// encoding time (`host_encoding_seconds_per_step`), each as a mean per step.
+/// starts: the GPU's launches, waits and traffic (`gpu_per_step`, wgpu only), the host's
+/// encoding time (`host_encoding_seconds_per_step`) and the training thread's own CPU time
+/// (`training_thread_cpu_seconds_per_step`: the host work that neither rayon's workers nor a
+/// GPU take over, the serial glue a GPU step waits on), each as a mean per step.
 pub(crate) struct StepCosts {
     gpu: Option<crate::backend::gpu::GpuCounters>,
     encoding: f64,
+    thread_cpu: Option<f64>,
+}
+
+/// [`StepCosts::per_step`].
+pub(crate) struct PerStep {
+    pub gpu: Option<crate::backend::gpu::GpuCounters>,
+    pub encoding_seconds: f64,
+    pub thread_cpu_seconds: Option<f64>,
 }
 
 impl StepCosts {
     pub(crate) fn start(backend: &Backend) -> Self {
-        Self { gpu: backend.gpu().map(|g| g.counters()), encoding: crate::nn::field::host_encoding_seconds() }
+        Self { gpu: backend.gpu().map(|g| g.counters()), encoding: crate::nn::field::host_encoding_seconds(), thread_cpu: crate::util::thread_cpu_seconds() }
     }
 
-    /// `(gpu_per_step, host_encoding_seconds_per_step)` over the `steps` since [`StepCosts::start`].
-    pub(crate) fn per_step(&self, backend: &Backend, steps: u64) -> (Option<crate::backend::gpu::GpuCounters>, f64) {
-        let gpu = self.gpu.zip(backend.gpu()).map(|(c0, g)| g.counters().per(&c0, steps));
-        (gpu, (crate::nn::field::host_encoding_seconds() - self.encoding) / steps.max(1) as f64)
+    /// The means over the `steps` since [`StepCosts::start`] (on the thread that started it).
+    pub(crate) fn per_step(&self, backend: &Backend, steps: u64) -> PerStep {
+        let n = steps.max(1) as f64;
+        PerStep {
+            gpu: self.gpu.zip(backend.gpu()).map(|(c0, g)| g.counters().per(&c0, steps)),
+            encoding_seconds: (crate::nn::field::host_encoding_seconds() - self.encoding) / n,
+            thread_cpu_seconds: self.thread_cpu.zip(crate::util::thread_cpu_seconds()).map(|(a, b)| (b - a) / n),
+        }
     }
 }
 
@@ -516,11 +530,12 @@ pub fn train_stage1(
     let its = (trainer.step - step0) as f64 / seconds_train.max(1e-9);
 
     // The training steps' costs, before the evaluation's renders add theirs.
-    let (gpu_per_step, encoding_per_step) = costs.per_step(backend, trainer.step - step0);
+    let per_step = costs.per_step(backend, trainer.step - step0);
     // Held-out views (or, without them, a few training views), rendered at a bounded size.
     let t_eval = Instant::now();
     let eval_views: Vec<&View> = if held.is_empty() { views.iter().step_by((views.len() / 4).max(1)).take(4).copied().collect() } else { held.iter().take(8).copied().collect() };
-    let ev = evaluate_views(backend, &trainer.model, &cfg.trace, &eval_views, 128 * 128)?;
+    trainer.sync_host()?;
+    let ev = evaluate_views(backend, trainer.model(), &cfg.trace, &eval_views, 128 * 128)?;
     let weak = ev.mask_iou < 0.8 || trainer.skipped * 10 > trainer.step.max(1);
     let report = serde_json::json!({
         "stage": "geometry",
@@ -535,8 +550,9 @@ pub fn train_stage1(
         "skipped_steps": trainer.skipped,
         "last": last,
         "it_per_s": its,
-        "gpu_per_step": gpu_per_step,
-        "host_encoding_seconds_per_step": encoding_per_step,
+        "gpu_per_step": per_step.gpu,
+        "host_encoding_seconds_per_step": per_step.encoding_seconds,
+        "training_thread_cpu_seconds_per_step": per_step.thread_cpu_seconds,
         "hull_init": hull_report,
         "mesh_init": mesh_report,
         "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr_pixels": HELD_OUT_PSNR_PIXELS, "psnr": ev.psnr, "mask_iou": ev.mask_iou, "per_view": ev.per_view, "seconds": t_eval.elapsed().as_secs_f64() },
@@ -810,8 +826,8 @@ pub fn read_run_scene(run_dir: &Path) -> Result<RunScene, DataError> {
 pub fn export_stage1(backend: &Backend, trainer: &Trainer, rs: &RunScene, asset: &AssetArgs, default_name: &str, ctx: &Context) -> anyhow::Result<ExportReport> {
     let rotation = DMat3::from_cols_array(&rs.rotation);
     let cfg = &trainer.cfg;
-    let sdf = TrainedSdf::new(backend, &trainer.model, rotation).context("meshing the trained SDF")?;
-    let material = RadiancePreview { model: &trainer.model, rotation, roughness: 0.5, feature: 16.0 * cfg.sizes.pixel_footprint };
+    let sdf = TrainedSdf::new(backend, trainer.model(), rotation).context("meshing the trained SDF")?;
+    let material = RadiancePreview { model: trainer.model(), rotation, roughness: 0.5, feature: 16.0 * cfg.sizes.pixel_footprint };
     let ecfg = ExportConfig {
         name: asset.name.clone().unwrap_or_else(|| default_name.to_string()),
         mesh: trained_mesh_config(&cfg.sizes, asset.resolution, asset.error_bound),

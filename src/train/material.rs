@@ -245,8 +245,8 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     // The geometry: stage 1's SDF, refined in place with `--refine-geometry` (a resumed run
     // continues from its refined SDF).
     let mut s1 = s1;
-    trainer.geometry_into(&mut s1.trainer.model).map_err(|e| DataError::new(&run_dir.join(CHECKPOINT2), e.to_string()))?;
-    let mut geom = s1.trainer.model;
+    trainer.geometry_into(s1.trainer.model_mut()?).map_err(|e| DataError::new(&run_dir.join(CHECKPOINT2), e.to_string()))?;
+    let mut geom = s1.trainer.into_model()?;
 
     // The surface cache: primary points once; secondary hits per lobe (all re-traced every
     // `geometry_retrace_every` iterations while the geometry is refined).
@@ -327,7 +327,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     let its = (trainer.step - step0) as f64 / seconds_train.max(1e-9);
 
     // The training steps' costs, before the evaluation's renders add theirs.
-    let (gpu_per_step, encoding_per_step) = costs.per_step(backend, trainer.step - step0);
+    let per_step = costs.per_step(backend, trainer.step - step0);
     // Held-out views rendered with the learned light and material.
     let t_eval = Instant::now();
     let eval_views: Vec<&View> = if held.is_empty() { views.iter().step_by((views.len() / 3).max(1)).take(3).copied().collect() } else { held.iter().take(4).copied().collect() };
@@ -396,8 +396,9 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "skipped_steps": trainer.skipped,
         "last": last,
         "it_per_s": its,
-        "gpu_per_step": gpu_per_step,
-        "host_encoding_seconds_per_step": encoding_per_step,
+        "gpu_per_step": per_step.gpu,
+        "host_encoding_seconds_per_step": per_step.encoding_seconds,
+        "training_thread_cpu_seconds_per_step": per_step.thread_cpu_seconds,
         "material": { "mean_albedo": mean_alb, "mean_roughness": mean_rough },
         "photo_texture": texture,
         "environment": {
@@ -471,7 +472,7 @@ pub fn stage2_geometry(s1: &Trainer, s2: &Stage2Trainer) -> anyhow::Result<Optio
         return Ok(None);
     }
     let mut m = Stage1Model::new(&s1.cfg)?;
-    m.radiance_params.clone_from(&s1.model.radiance_params);
+    m.radiance_params.clone_from(&s1.model().radiance_params);
     s2.geometry_into(&mut m)?;
     Ok(Some(m))
 }
@@ -608,7 +609,7 @@ pub fn export_stage2(backend: &Backend, s1: &Trainer, s2: &Stage2Trainer, rs: &R
     let rotation = DMat3::from_cols_array(&rs.rotation);
     let cfg = &s1.cfg;
     let refined = stage2_geometry(s1, s2)?;
-    let sdf = TrainedSdf::new(backend, refined.as_ref().unwrap_or(&s1.model), rotation).context("meshing the trained SDF")?;
+    let sdf = TrainedSdf::new(backend, refined.as_ref().unwrap_or(s1.model()), rotation).context("meshing the trained SDF")?;
     let material = LearnedMaterial { model: &s2.model, rotation, feature: 16.0 * cfg.sizes.pixel_footprint };
     let ecfg = ExportConfig {
         name: asset.name.clone().unwrap_or_else(|| default_name.to_string()),

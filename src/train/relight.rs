@@ -267,7 +267,7 @@ pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
     let test = args.out.join("test");
     std::fs::create_dir_all(&test).map_err(|e| DataError::new(&test, format!("cannot create: {e}")))?;
     let refined = super::material::stage2_geometry(&s1.trainer, &s2)?;
-    let sdf = refined.as_ref().unwrap_or(&s1.trainer.model);
+    let sdf = refined.as_ref().unwrap_or(s1.trainer.model());
     let tc = &s1.trainer.cfg.trace;
     let pb = ctx.progress((views.len() * (1 + maps.len())) as u64, "relight");
     let mut n = 0;

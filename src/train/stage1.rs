@@ -26,18 +26,21 @@
 //! is added to `dL/df(x0)`. Everything stays first-order, and the whole pixel's gradient matches
 //! central differences of re-traced renders (tested).
 //!
-//! Parameters live on the host (the field's encoding runs through the cpu twins of `nn::encoding`
-//! and uploads the MLP parameters per evaluation); every MLP forward/backward runs on the chosen
-//! backend. Adam runs on the host tensors; a step whose gradient holds NaN/Inf is skipped and
-//! counted, never applied.
+//! On the cpu backend the parameters and Adam live on the host. On wgpu, where every field
+//! evaluation runs on the device ([`SdfField::evaluates_on_device`]: the fast preset's hash grid,
+//! or the paper preset's parameter-free encoding), the SDF's parameters and Adam moments stay
+//! there ([`Stage1Config::device_optimiser`]): the gradient is checked and applied on the device
+//! and the host copy is refreshed only when read ([`Trainer::sync_host`], checkpoints). The
+//! radiance net's parameters (the appearance grid is encoded on the host) keep a host Adam.
+//! Either way, a step whose gradient holds NaN/Inf anywhere is skipped and counted, never applied.
 
 use std::path::{Path, PathBuf};
 
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::backend::{Backend, BackendError};
-use crate::nn::adam::{adam_update_host, host_grad_norm, AdamConfig, AdamState};
+use crate::backend::{Backend, BackendError, Tensor};
+use crate::nn::adam::{adam_update_host, host_grad_norm, AdamConfig, AdamItem, AdamState};
 use crate::nn::encoding::{encoding_forward_cpu, EncodingConfig};
 use crate::nn::field::{Encoder, FieldEncoding, FieldOutputGrads, FieldOutputs, PositionEncoder, SdfField, SdfFieldConfig};
 use crate::nn::mlp::{Activation, Init, Mlp, MlpConfig};
@@ -198,6 +201,12 @@ pub struct Stage1Config {
     /// reaches. Run files without the field read false and resume as they ran.
     #[serde(default)]
     pub sparse_adam: bool,
+    /// On wgpu, keep the SDF's parameters and Adam moments on the device and run Adam there
+    /// (see the module docs): a step then neither reads the hash grid's dense gradient back nor
+    /// uploads its parameters. Where some evaluation would read the host copy (an encoding that
+    /// runs on the host), the host path is used whatever this says.
+    #[serde(default = "yes")]
+    pub device_optimiser: bool,
     pub seed: u64,
     pub checkpoint_every: u64,
     pub downscale: usize,
@@ -304,6 +313,7 @@ impl Stage1Config {
             // 1.374% / 0.9205. Stage 1 on 2^19 tables (from a sphere, interleaved runs): the
             // Ethiopian head 7.1 -> 9.1 it/s, a 1600² capture read at 1/2 4.1 -> 5.3 it/s.
             sparse_adam: true,
+            device_optimiser: true,
             seed: 0,
             checkpoint_every: 100,
             downscale,
@@ -853,6 +863,34 @@ pub fn loss_and_grad(
     ls: &LossSettings,
     jitter: f32,
 ) -> Result<StepGrad, BackendError> {
+    let (stats, d_sdf, d_radiance) = loss_and_grad_tensors(backend, model, trace_cfg, batch, eik_points, ls, jitter)?;
+    Ok(StepGrad { stats, d_sdf: sdf_grad_to_host(backend, d_sdf)?, d_radiance })
+}
+
+/// The SDF's parameter gradient as one host vector (one wait for both halves on wgpu).
+pub fn sdf_grad_to_host(backend: &Backend, d: [Tensor; 2]) -> Result<Vec<f32>, BackendError> {
+    let (mut a, b) = match d {
+        [Tensor::Host(a), Tensor::Host(b)] => (a, b),
+        [a, b] => backend.to_vec2(&a, &b)?,
+    };
+    a.extend(b);
+    Ok(a)
+}
+
+/// The SDF's part of a step's gradient, `[encoding, MLP]`, where the field computed it
+/// ([`SdfField::value_and_grad_tensors`]), the statistics and the radiance net's (host) part.
+type StepGradTensors = (StepStats, [Tensor; 2], Vec<f32>);
+
+/// [`loss_and_grad`] with the SDF's gradient left on the device.
+fn loss_and_grad_tensors(
+    backend: &Backend,
+    model: &Model,
+    trace_cfg: &TraceConfig,
+    batch: &Batch,
+    eik_points: &[[f32; 3]],
+    ls: &LossSettings,
+    jitter: f32,
+) -> Result<StepGradTensors, BackendError> {
     let nrays = batch.rays.len();
     let sdf_fn = model.sdf_batch(backend)?;
     let tr = trace(&sdf_fn, &batch.rays, trace_cfg)?;
@@ -919,7 +957,7 @@ pub fn loss_and_grad(
     let mut parts = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64); // rgb, eik, mask, sq err, smoothness
     let mut d_radiance: Result<Vec<f32>, BackendError> = Ok(Vec::new());
     let rad_params = backend.upload(model.radiance_split().1);
-    let (_, d_sdf) = model.field.value_and_grad(backend, &model.sdf_params, &pts, |o: &FieldOutputs| {
+    let (_, d_sdf) = model.field.value_and_grad_tensors(backend, &model.sdf_params, &pts, |o: &FieldOutputs| {
         let n = ns + nm + ne;
         let fd = model.field.config.feature_dim;
         let mut g = FieldOutputGrads { sdf: vec![0.0; n], gradient: vec![0.0; 3 * n], feature: vec![0.0; n * fd] };
@@ -996,7 +1034,7 @@ pub fn loss_and_grad(
         field_evaluations: evals,
         ..Default::default()
     };
-    Ok(StepGrad { stats, d_sdf, d_radiance })
+    Ok((stats, d_sdf, d_radiance))
 }
 
 /// Volume rendering of one step ([`Stage1Config::volume_fraction`]).
@@ -1080,6 +1118,20 @@ pub fn volume_loss_and_grad(
     ls: &LossSettings,
     vs: &VolumeSettings,
 ) -> Result<StepGrad, BackendError> {
+    let (stats, d_sdf, d_radiance) = volume_loss_and_grad_tensors(backend, model, batch, vsm, eik_points, ls, vs)?;
+    Ok(StepGrad { stats, d_sdf: sdf_grad_to_host(backend, d_sdf)?, d_radiance })
+}
+
+/// [`volume_loss_and_grad`] with the SDF's gradient left on the device.
+fn volume_loss_and_grad_tensors(
+    backend: &Backend,
+    model: &Model,
+    batch: &Batch,
+    vsm: &VolumeSamples,
+    eik_points: &[[f32; 3]],
+    ls: &LossSettings,
+    vs: &VolumeSettings,
+) -> Result<StepGradTensors, BackendError> {
     use crate::render::volume::{composite, composite_backward};
     let nrays = batch.rays.len();
     let s = vs.sharpness as f64;
@@ -1095,7 +1147,7 @@ pub fn volume_loss_and_grad(
     let mut parts = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0usize); // rgb, eik, mask, sq err, colour rays
     let mut d_radiance: Result<Vec<f32>, BackendError> = Ok(Vec::new());
     let rad_params = backend.upload(model.radiance_split().1);
-    let (_, d_sdf) = model.field.value_and_grad(backend, &model.sdf_params, &pts, |o: &FieldOutputs| {
+    let (_, d_sdf) = model.field.value_and_grad_tensors(backend, &model.sdf_params, &pts, |o: &FieldOutputs| {
         let n = np + ne;
         let fd = model.field.config.feature_dim;
         let mut g = FieldOutputGrads { sdf: vec![0.0; n], gradient: vec![0.0; 3 * n], feature: vec![0.0; n * fd] };
@@ -1157,7 +1209,7 @@ pub fn volume_loss_and_grad(
         field_evaluations: evals,
         ..Default::default()
     };
-    Ok(StepGrad { stats, d_sdf, d_radiance })
+    Ok((stats, d_sdf, d_radiance))
 }
 
 /// The eikonal term `weight · mean over points i of (|g_i| − 1)²` over field gradients
@@ -1201,13 +1253,36 @@ pub fn normal_smoothness(gradients: &[f32], pairs: &[(usize, usize)], weight: f3
 #[derive(Debug)]
 pub struct Trainer {
     pub cfg: Stage1Config,
-    pub model: Model,
+    /// Its SDF parameters are stale while `device` holds newer ones: read through
+    /// [`Trainer::model`] after [`Trainer::sync_host`].
+    model: Model,
     adam_sdf: AdamState,
     adam_radiance: AdamState,
     pub step: u64,
     /// Steps skipped because their gradient held NaN/Inf.
     pub skipped: u64,
     host: Backend,
+    device: Option<DeviceSdf>,
+}
+
+/// The SDF's parameters and Adam moments on the device ([`Stage1Config::device_optimiser`]),
+/// split as the field splits them, `[encoding, MLP]`.
+#[derive(Debug)]
+struct DeviceSdf {
+    backend: Backend,
+    params: [Tensor; 2],
+    adam: [AdamState; 2],
+    /// The host copies (`Model::sdf_params`, `Trainer::adam_sdf`) hold the device's values.
+    host_current: bool,
+}
+
+/// The statistics of the gradient of one step on the device path: the device gradient's, plus
+/// the host tensors'. `None` when any value is non-finite.
+fn combined_norm(backend: &Backend, device: &[&Tensor], host: &[&[f32]]) -> Result<Option<f64>, BackendError> {
+    let (sq_dev, bad_dev) = backend.adam_grad_stats(device)?;
+    let Some(h) = host_grad_norm(host) else { return Ok(None) };
+    let sq = sq_dev + h * h;
+    Ok((bad_dev == 0 && sq.is_finite()).then(|| sq.sqrt()))
 }
 
 /// Checkpoint file names inside a run folder.
@@ -1221,7 +1296,82 @@ impl Trainer {
         let host = Backend::cpu();
         let adam_sdf = AdamState::new(&host, model.sdf_params.len());
         let adam_radiance = AdamState::new(&host, model.radiance_params.len());
-        Ok(Self { cfg, model, adam_sdf, adam_radiance, step: 0, skipped: 0, host })
+        Ok(Self { cfg, model, adam_sdf, adam_radiance, step: 0, skipped: 0, host, device: None })
+    }
+
+    /// The model. Its SDF parameters are the host copy: after training on wgpu call
+    /// [`Trainer::sync_host`] first (reading a stale copy is a bug and panics).
+    pub fn model(&self) -> &Model {
+        assert!(self.device.as_ref().is_none_or(|d| d.host_current), "stage 1: the SDF's newest parameters are on the device; call Trainer::sync_host first");
+        &self.model
+    }
+
+    /// The model to change: current on the host, which holds the only copy from here on.
+    pub fn model_mut(&mut self) -> Result<&mut Model, BackendError> {
+        self.sync_host()?;
+        self.device = None;
+        Ok(&mut self.model)
+    }
+
+    /// The model, current.
+    pub fn into_model(mut self) -> Result<Model, BackendError> {
+        self.sync_host()?;
+        Ok(self.model)
+    }
+
+    /// Whether the SDF's newest parameters are on the device only.
+    pub fn host_is_stale(&self) -> bool {
+        self.device.as_ref().is_some_and(|d| !d.host_current)
+    }
+
+    /// Bring the host copies of the SDF's parameters and Adam moments up to the device's (one
+    /// wait; nothing to do on the host path).
+    pub fn sync_host(&mut self) -> Result<(), BackendError> {
+        let Some(d) = self.device.as_mut().filter(|d| !d.host_current) else {
+            return Ok(());
+        };
+        let [p0, p1, m0, m1, v0, v1]: [Vec<f32>; 6] = d
+            .backend
+            .to_vecs(&[&d.params[0], &d.params[1], &d.adam[0].m, &d.adam[1].m, &d.adam[0].v, &d.adam[1].v])?
+            .try_into()
+            .map_err(|_| BackendError::Map("device SDF readback count".into()))?;
+        let cat = |mut a: Vec<f32>, b: Vec<f32>| {
+            a.extend(b);
+            a
+        };
+        let params = cat(p0, p1);
+        self.model.sdf_params.copy_from_slice(&params);
+        self.adam_sdf = AdamState { m: Tensor::Host(cat(m0, m1)), v: Tensor::Host(cat(v0, v1)), step: d.adam[0].step };
+        d.host_current = true;
+        Ok(())
+    }
+
+    /// Whether this run keeps the SDF on `backend`'s device.
+    fn on_device(&self, backend: &Backend) -> bool {
+        self.cfg.device_optimiser && self.model.field.evaluates_on_device(backend)
+    }
+
+    /// The device copies, made from the host's on first use.
+    fn device_sdf(&mut self, backend: &Backend) -> Result<&mut DeviceSdf, BackendError> {
+        if self.device.is_none() {
+            let split = self.model.field.encoder.num_params();
+            let (m, v) = (self.adam_sdf.m.host()?, self.adam_sdf.v.host()?);
+            let halves = |x: &[f32]| {
+                let (a, b) = x.split_at(split);
+                [backend.upload(a), backend.upload(b)]
+            };
+            let (ms, vs) = (halves(m), halves(v));
+            let [m0, m1] = ms;
+            let [v0, v1] = vs;
+            let step = self.adam_sdf.step;
+            self.device = Some(DeviceSdf {
+                backend: backend.clone(),
+                params: halves(&self.model.sdf_params),
+                adam: [AdamState { m: m0, v: v0, step }, AdamState { m: m1, v: v1, step }],
+                host_current: true,
+            });
+        }
+        Ok(self.device.as_mut().expect("made above"))
     }
 
     fn adam(&self) -> AdamConfig {
@@ -1230,6 +1380,9 @@ impl Trainer {
 
     /// Apply gradients (skipped and counted when any value is non-finite).
     pub fn apply(&mut self, d_sdf: Vec<f32>, d_radiance: Vec<f32>, lr_field: f32, lr_radiance: f32) -> Result<(bool, f64), BackendError> {
+        // The host copies are updated: they become the only current ones.
+        self.sync_host()?;
+        self.device = None;
         let Some(norm) = host_grad_norm(&[&d_sdf, &d_radiance]) else {
             self.skipped += 1;
             return Ok((false, f64::NAN));
@@ -1274,10 +1427,18 @@ impl Trainer {
             out_of_mask_min_sdf: self.cfg.out_of_mask_min_sdf,
         };
         let jitter = rng.random_range(0.0f32..1.0);
-        // The SDF's parameters stay put until `apply`: their device copy is used as is.
-        let pin = self.model.field.pin(backend, &self.model.sdf_params)?;
-        let g = match volume {
-            None => loss_and_grad(backend, &self.model, &self.cfg.trace, &batch, &eik, &ls, jitter)?,
+        let device = self.on_device(backend);
+        if device {
+            self.device_sdf(backend)?;
+        }
+        // The SDF's parameters stay put until Adam: their device copy is used as is (on the
+        // device path it is the only current one).
+        let pin = match &self.device {
+            Some(d) if device => self.model.field.pin_device(&self.model.sdf_params, [d.params[0].device()?, d.params[1].device()?])?,
+            _ => self.model.field.pin(backend, &self.model.sdf_params)?,
+        };
+        let (stats, d_sdf, d_radiance) = match volume {
+            None => loss_and_grad_tensors(backend, &self.model, &self.cfg.trace, &batch, &eik, &ls, jitter)?,
             Some(sharpness) => {
                 let vs = VolumeSettings {
                     sharpness,
@@ -1287,19 +1448,41 @@ impl Trainer {
                     bound: b,
                 };
                 let vsm = volume_samples(backend, &self.model, &batch, &vs, jitter)?;
-                volume_loss_and_grad(backend, &self.model, &batch, &vsm, &eik, &ls, &vs)?
+                volume_loss_and_grad_tensors(backend, &self.model, &batch, &vsm, &eik, &ls, &vs)?
             }
         };
         drop(pin);
         let f = self.cfg.lr_factor(self.step);
         let warm = (self.step as f32) < self.cfg.radiance_warmup * self.cfg.iterations as f32;
         let (lf, lr) = (if warm { 0.0 } else { self.cfg.lr_field * f }, self.cfg.lr_radiance * f);
-        let (applied, norm) = if g.stats.loss.is_finite() { self.apply(g.d_sdf, g.d_radiance, lf, lr)? } else {
+        let (applied, norm) = if !stats.loss.is_finite() {
             self.skipped += 1;
             (false, f64::NAN)
+        } else if device {
+            self.apply_device(d_sdf, d_radiance, lf, lr)?
+        } else {
+            self.apply(sdf_grad_to_host(backend, d_sdf)?, d_radiance, lf, lr)?
         };
         self.step += 1;
-        Ok(StepStats { step: self.step, applied, grad_norm: norm, lr_field: lf, ..g.stats })
+        Ok(StepStats { step: self.step, applied, grad_norm: norm, lr_field: lf, ..stats })
+    }
+
+    /// [`Trainer::apply`] with the SDF's gradient, parameters and moments on the device: one
+    /// wait for the gradient's statistics (over both parts, so a non-finite value anywhere skips
+    /// the whole step), then Adam queued there and run on the host for the radiance net.
+    fn apply_device(&mut self, d_sdf: [Tensor; 2], d_radiance: Vec<f32>, lr_field: f32, lr_radiance: f32) -> Result<(bool, f64), BackendError> {
+        let cfg = self.adam();
+        let d = self.device.as_mut().ok_or_else(|| BackendError::Config("stage 1: no device copy of the SDF".into()))?;
+        let Some(norm) = combined_norm(&d.backend, &[&d_sdf[0], &d_sdf[1]], &[&d_radiance])? else {
+            self.skipped += 1;
+            return Ok((false, f64::NAN));
+        };
+        let DeviceSdf { backend, params: [p0, p1], adam: [a0, a1], .. } = d;
+        let mut items = [AdamItem { params: p0, grads: &d_sdf[0], state: a0 }, AdamItem { params: p1, grads: &d_sdf[1], state: a1 }];
+        backend.adam_apply(&cfg, &mut items, lr_field, norm)?;
+        d.host_current = false;
+        adam_host(&cfg, &mut self.model.radiance_params, d_radiance, &mut self.adam_radiance, lr_radiance)?;
+        Ok((true, norm))
     }
 
     /// Fit the SDF to a signed distance grid (the visual hull) for `steps` steps: L1 on the
@@ -1317,7 +1500,16 @@ impl Trainer {
         // are constrained (coarse to fine only guards the sparse photometric phase).
         self.model.field.encoder.set_active_levels(None);
         // The fit has its own optimiser state: photometric training starts with fresh moments.
-        let mut fit_state = AdamState::new(&self.host, self.model.sdf_params.len());
+        // One state per parameter tensor: the device's two halves, or the host's whole vector.
+        let device = self.on_device(backend);
+        let mut fit_state: Vec<AdamState> = if device {
+            self.device_sdf(backend)?.params.iter().map(|p| AdamState::new(backend, p.len())).collect()
+        } else {
+            // The host copy is trained: it becomes the only current one.
+            self.sync_host()?;
+            self.device = None;
+            vec![AdamState::new(&self.host, self.model.sdf_params.len())]
+        };
         let h = grid.spacing();
         let b = self.cfg.trace.bound;
         for s in 0..steps {
@@ -1334,8 +1526,11 @@ impl Trainer {
                 .collect();
             let target: Vec<f32> = pts.iter().map(|&p| grid.sample(p).clamp(-clamp, clamp)).collect();
             let w = self.cfg.eikonal_weight as f64;
-            let pin = self.model.field.pin(backend, &self.model.sdf_params)?;
-            let (l, d) = self.model.field.value_and_grad(backend, &self.model.sdf_params, bytemuck::cast_slice(&pts), |o| {
+            let pin = match &self.device {
+                Some(d) if device => self.model.field.pin_device(&self.model.sdf_params, [d.params[0].device()?, d.params[1].device()?])?,
+                _ => self.model.field.pin(backend, &self.model.sdf_params)?,
+            };
+            let (l, d) = self.model.field.value_and_grad_tensors(backend, &self.model.sdf_params, bytemuck::cast_slice(&pts), |o| {
                 let mut g = FieldOutputGrads { sdf: vec![0.0; n], gradient: vec![0.0; 3 * n], feature: vec![] };
                 let mut l = 0.0;
                 for i in 0..n {
@@ -1356,12 +1551,29 @@ impl Trainer {
                 (l, g)
             })?;
             drop(pin);
-            if !d.iter().all(|v| v.is_finite()) {
-                self.skipped += 1;
-                continue;
-            }
             let lr = self.cfg.hull_fit_lr * self.cfg.hull_fit_lr_final.powf(s as f32 / steps.max(1) as f32);
-            adam_host(&self.adam(), &mut self.model.sdf_params, d, &mut fit_state, lr)?;
+            let cfg = self.adam();
+            match (self.device.as_mut().filter(|_| device), &mut fit_state[..]) {
+                (Some(dev), [a0, a1]) => {
+                    let Some(norm) = combined_norm(backend, &[&d[0], &d[1]], &[])? else {
+                        self.skipped += 1;
+                        continue;
+                    };
+                    let [p0, p1] = &mut dev.params;
+                    let mut items = [AdamItem { params: p0, grads: &d[0], state: a0 }, AdamItem { params: p1, grads: &d[1], state: a1 }];
+                    backend.adam_apply(&cfg, &mut items, lr, norm)?;
+                    dev.host_current = false;
+                }
+                (_, [a]) => {
+                    let d = sdf_grad_to_host(backend, d)?;
+                    if !d.iter().all(|v| v.is_finite()) {
+                        self.skipped += 1;
+                        continue;
+                    }
+                    adam_host(&cfg, &mut self.model.sdf_params, d, a, lr)?;
+                }
+                _ => return Err(BackendError::Shape("hull fit: optimiser state does not match the parameters".into())),
+            }
             last = l;
             progress(s, l);
         }
@@ -1369,9 +1581,10 @@ impl Trainer {
     }
 
     /// Save a checkpoint (params + Adam state + config + step) into `dir`, atomically.
-    pub fn save(&self, dir: &Path, scene_key: &str) -> Result<(), DataError> {
+    pub fn save(&mut self, dir: &Path, scene_key: &str) -> Result<(), DataError> {
         let mut st = ParamStore::new();
         let err = |e: BackendError| DataError::new(dir, e.to_string());
+        self.sync_host().map_err(err)?;
         st.insert("sdf", &[self.model.sdf_params.len()], self.model.sdf_params.clone()).map_err(err)?;
         st.insert("radiance", &[self.model.radiance_params.len()], self.model.radiance_params.clone()).map_err(err)?;
         st.put_adam_state(&self.host, "sdf", &self.adam_sdf).map_err(err)?;
