@@ -602,7 +602,16 @@ fn a_wgpu_training_step_keeps_the_sdf_on_the_device_and_a_checkpoint_resumes_it(
     let run = |t: &mut Trainer, steps: usize| (0..steps).map(|_| t.train_step(&gpu, &data).unwrap()).collect::<Vec<_>>();
     let mut host = Trainer::new(config(false)).unwrap();
     let mut dev = Trainer::new(config(true)).unwrap();
-    let (sh, sd) = (run(&mut host, 3), run(&mut dev, 3));
+    let sh = run(&mut host, 3);
+    // After its first step (which uploads them), the device path moves neither the SDF's nor the
+    // appearance grid's parameters or gradients across the bus.
+    let mut sd = run(&mut dev, 1);
+    let g = gpu.gpu().unwrap().clone();
+    let c0 = g.counters();
+    sd.extend(run(&mut dev, 2));
+    let per_step = g.counters().per(&c0, 2);
+    let smallest = [host.model().radiance_split().0.len(), host.model().field.encoder.num_params()].into_iter().min().unwrap();
+    assert!(per_step.read_bytes < 4.0 * smallest as f64 && per_step.upload_bytes < 4.0 * smallest as f64, "device path per step: {per_step:?} (the smaller grid: {smallest} parameters)");
     assert!(dev.host_is_stale() && !host.host_is_stale());
     for (a, b) in sh.iter().zip(&sd) {
         assert!(a.applied && b.applied && (a.loss - b.loss).abs() <= 1e-4 * a.loss, "step {}: loss host {} vs device {}", a.step, a.loss, b.loss);
@@ -611,6 +620,9 @@ fn a_wgpu_training_step_keeps_the_sdf_on_the_device_and_a_checkpoint_resumes_it(
     dev.save(dir.path(), "example").unwrap();
     host.sync_host().unwrap();
     pii_bake::testing::assert_close("SDF after 3 steps, device vs host optimiser", &dev.model().sdf_params, &host.model().sdf_params, pii_bake::testing::Tolerance::new(1e-3, 1e-5));
+    let grid = host.model().radiance_split().0.len();
+    assert!(grid > 0 && dev.model().radiance_params[..grid] != *Model::new(&config(true)).unwrap().radiance_split().0, "the appearance grid trains");
+    pii_bake::testing::assert_close("radiance net after 3 steps, device vs host optimiser", &dev.model().radiance_params, &host.model().radiance_params, pii_bake::testing::Tolerance::new(1e-3, 1e-5));
     let (mut resumed, _) = Trainer::load(dir.path(), Some("example")).unwrap();
     let (a, b) = (run(&mut dev, 2), run(&mut resumed, 2));
     for (a, b) in a.iter().zip(&b) {
@@ -620,4 +632,5 @@ fn a_wgpu_training_step_keeps_the_sdf_on_the_device_and_a_checkpoint_resumes_it(
     resumed.sync_host().unwrap();
     // Without the moments the resumed step would move each entry by a full learning rate.
     pii_bake::testing::assert_close("SDF, straight vs resumed", &resumed.model().sdf_params, &dev.model().sdf_params, pii_bake::testing::Tolerance::new(1e-4, 1e-6));
+    pii_bake::testing::assert_close("radiance net, straight vs resumed", &resumed.model().radiance_params, &dev.model().radiance_params, pii_bake::testing::Tolerance::new(1e-4, 1e-6));
 }

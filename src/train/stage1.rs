@@ -29,16 +29,18 @@
 //! On the cpu backend the parameters and Adam live on the host. On wgpu, where every field
 //! evaluation runs on the device ([`SdfField::evaluates_on_device`]: the fast preset's hash grid,
 //! or the paper preset's parameter-free encoding), the SDF's parameters and Adam moments stay
-//! there ([`Stage1Config::device_optimiser`]): the gradient is checked and applied on the device
-//! and the host copy is refreshed only when read ([`Trainer::sync_host`], checkpoints). The
-//! radiance net's parameters (the appearance grid is encoded on the host) keep a host Adam.
-//! Either way, a step whose gradient holds NaN/Inf anywhere is skipped and counted, never applied.
+//! there ([`Stage1Config::device_optimiser`]), and so do the appearance grid's (encoded and
+//! differentiated there, [`Model::pin_appearance`]): the gradients are checked and applied on the
+//! device and the host copy is refreshed only when read ([`Trainer::sync_host`], checkpoints).
+//! The radiance MLP keeps a host Adam. Either way, a step whose gradient holds NaN/Inf anywhere is
+//! skipped and counted, never applied.
 
 use std::path::{Path, PathBuf};
 
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
+use crate::backend::gpu::GpuBuffer;
 use crate::backend::{Backend, BackendError, Tensor};
 use crate::nn::adam::{adam_update_host, host_grad_norm, AdamConfig, AdamItem, AdamState};
 use crate::nn::encoding::{encoding_forward_cpu, EncodingConfig};
@@ -201,9 +203,9 @@ pub struct Stage1Config {
     /// reaches. Run files without the field read false and resume as they ran.
     #[serde(default)]
     pub sparse_adam: bool,
-    /// On wgpu, keep the SDF's parameters and Adam moments on the device and run Adam there
-    /// (see the module docs): a step then neither reads the hash grid's dense gradient back nor
-    /// uploads its parameters. Where some evaluation would read the host copy (an encoding that
+    /// On wgpu, keep the SDF's and the appearance grid's parameters and Adam moments on the
+    /// device and run Adam there (see the module docs): a step then neither reads the grids'
+    /// dense gradients back nor uploads their parameters. Where some evaluation would read the host copy (an encoding that
     /// runs on the host), the host path is used whatever this says.
     #[serde(default = "yes")]
     pub device_optimiser: bool,
@@ -635,6 +637,19 @@ pub struct Model {
     pub radiance_params: Vec<f32>,
     /// The SDF last sampled on a grid ([`Model::sdf_grid`]) and the parameters it was sampled at.
     grid_memo: std::sync::Mutex<Option<(Vec<f32>, std::sync::Arc<SdfGrid>)>>,
+    /// The appearance grid's device copy while a wgpu training step keeps its parameters there
+    /// ([`Model::pin_appearance`]): the grid is then encoded and differentiated on the device,
+    /// and the host copy in `radiance_params` is not read.
+    appearance_device: std::sync::Mutex<Option<GpuBuffer>>,
+}
+
+/// [`Model::pin_appearance`]'s borrow: dropping it returns the model to its host copy.
+pub(crate) struct AppearancePin<'a>(&'a Model);
+
+impl Drop for AppearancePin<'_> {
+    fn drop(&mut self) {
+        *self.0.appearance_device.lock().unwrap_or_else(|e| e.into_inner()) = None;
+    }
 }
 
 impl Model {
@@ -645,7 +660,7 @@ impl Model {
         let appearance = cfg.appearance_encoder();
         let mut radiance_params = appearance.as_ref().map(|e| e.init(cfg.seed.wrapping_add(29))).unwrap_or_default();
         radiance_params.extend(radiance.init(Init::Default, cfg.seed.wrapping_add(17)));
-        Ok(Self { field, radiance, view_encoding: EncodingConfig::frequency(cfg.view_freqs), appearance, sdf_params, radiance_params, grid_memo: Default::default() })
+        Ok(Self { field, radiance, view_encoding: EncodingConfig::frequency(cfg.view_freqs), appearance, sdf_params, radiance_params, grid_memo: Default::default(), appearance_device: Default::default() })
     }
 
     /// The SDF sampled at `nodes³` nodes over the bounding cube `[-1, 1]³` (stage 2's secondary
@@ -678,15 +693,43 @@ impl Model {
         self.radiance_params.split_at(self.appearance.as_ref().map_or(0, |e| e.num_params()))
     }
 
+    /// The radiance net's gradient of a step that reached no surface.
+    fn zero_radiance_grad(&self) -> RadianceGrad {
+        let (grid, mlp) = self.radiance_split();
+        (Tensor::Host(vec![0.0; grid.len()]), vec![0.0; mlp.len()])
+    }
+
     /// The features the radiance net reads at `x` (`range` of the field outputs `o`).
-    fn features(&self, x: &[[f32; 3]], o: &FieldOutputs, range: std::ops::Range<usize>) -> Vec<f32> {
-        match &self.appearance {
-            Some(e) => e.forward(self.radiance_split().0, bytemuck::cast_slice(x)),
-            None => {
+    fn features(&self, backend: &Backend, x: &[[f32; 3]], o: &FieldOutputs, range: std::ops::Range<usize>) -> Result<Vec<f32>, BackendError> {
+        match (&self.appearance, self.appearance_copy(backend)) {
+            (Some(e), Some(p)) => {
+                let f = backend.encoding_forward(&e.encoding, &p, &backend.upload(bytemuck::cast_slice(x)), x.len())?;
+                backend.to_vec(&f)
+            }
+            (Some(e), None) => Ok(e.forward(self.radiance_split().0, bytemuck::cast_slice(x))),
+            (None, _) => {
                 let fd = self.field.config.feature_dim;
-                o.feature[fd * range.start..fd * range.end].to_vec()
+                Ok(o.feature[fd * range.start..fd * range.end].to_vec())
             }
         }
+    }
+
+    /// Whether the appearance grid can live on the device alone: it has parameters and the
+    /// plain encoding (no raw position, every level) that the device twin computes.
+    pub fn appearance_on_device(&self, backend: &Backend) -> bool {
+        backend.gpu().is_some() && self.appearance.as_ref().is_some_and(|e| e.num_params() > 0 && !e.raw_xyz && e.active_levels.is_none())
+    }
+
+    /// Encode and differentiate the appearance grid with the device copy `params` while the
+    /// returned borrow lives (the trainer's device optimiser holds the only current copy).
+    pub(crate) fn pin_appearance(&self, params: &GpuBuffer) -> AppearancePin<'_> {
+        *self.appearance_device.lock().unwrap_or_else(|e| e.into_inner()) = Some(params.clone());
+        AppearancePin(self)
+    }
+
+    fn appearance_copy(&self, backend: &Backend) -> Option<Tensor> {
+        backend.gpu()?;
+        self.appearance_device.lock().unwrap_or_else(|e| e.into_inner()).clone().map(Tensor::Device)
     }
 
     /// SDF values at flattened points.
@@ -709,8 +752,8 @@ impl Model {
         Ok(ModelSdf { model: self, backend, device: self.field.on_device_eval(backend, &self.sdf_params)?, _pin: pin })
     }
 
-    fn radiance_input(&self, x: &[[f32; 3]], dirs: &[[f32; 3]], o: &FieldOutputs, range: std::ops::Range<usize>) -> Vec<f32> {
-        let feat = self.features(x, o, range.clone());
+    fn radiance_input(&self, backend: &Backend, x: &[[f32; 3]], dirs: &[[f32; 3]], o: &FieldOutputs, range: std::ops::Range<usize>) -> Result<Vec<f32>, BackendError> {
+        let feat = self.features(backend, x, o, range.clone())?;
         let fd = feat.len() / x.len().max(1);
         let view: Vec<f32> = dirs.iter().flat_map(|d| [-d[0], -d[1], -d[2]]).collect();
         let venc = encoding_forward_cpu(&self.view_encoding, &[], &view, 3);
@@ -722,13 +765,13 @@ impl Model {
             input.extend_from_slice(&o.gradient[3 * i..3 * i + 3]);
             input.extend_from_slice(&feat[fd * k..fd * (k + 1)]);
         }
-        input
+        Ok(input)
     }
 
     /// Backward of the radiance net run (`fwd`) at the points `x` (the first `x.len()` field
     /// outputs) for the colour gradient `dc` `[n, 3]`: returns the gradient of the radiance
-    /// parameters (appearance grid, then MLP) and adds the normal (scaled by `normal_scale`) and
-    /// feature gradients to `g`.
+    /// parameters, `(appearance grid, MLP)` (the grid's on the device while it is pinned there),
+    /// and adds the normal (scaled by `normal_scale`) and feature gradients to `g`.
     fn radiance_backward(
         &self,
         backend: &Backend,
@@ -738,7 +781,7 @@ impl Model {
         x: &[[f32; 3]],
         normal_scale: f32,
         g: &mut FieldOutputGrads,
-    ) -> Result<Vec<f32>, BackendError> {
+    ) -> Result<RadianceGrad, BackendError> {
         let ns = x.len();
         let fd = self.field.config.feature_dim;
         let grads = backend.mlp_backward(&self.radiance, rad_params, fwd, &backend.from_vec(dc))?;
@@ -759,12 +802,15 @@ impl Model {
                 None => g.feature[k * fd..(k + 1) * fd].copy_from_slice(&row[6 + vd..]),
             }
         }
-        let mut d = match &self.appearance {
-            Some(e) => e.backward_params(self.radiance_split().0, bytemuck::cast_slice(x), &d_feat),
-            None => Vec::new(),
+        let d_grid = match (&self.appearance, self.appearance_copy(backend)) {
+            (Some(e), Some(p)) => {
+                let xt = backend.upload(bytemuck::cast_slice(x));
+                backend.encoding_backward(&e.encoding, &p, &xt, ns, &backend.from_vec(d_feat), false)?.0
+            }
+            (Some(e), None) => Tensor::Host(e.backward_params(self.radiance_split().0, bytemuck::cast_slice(x), &d_feat)),
+            (None, _) => Tensor::Host(Vec::new()),
         };
-        d.extend(d_mlp);
-        Ok(d)
+        Ok((d_grid, d_mlp))
     }
 
     /// Colour (sRGB, [0, 1]) at surface points seen along `dirs`: forward only.
@@ -773,7 +819,7 @@ impl Model {
             return Ok(Vec::new());
         }
         let o = self.field.eval_with_gradient(backend, &self.sdf_params, bytemuck::cast_slice(x))?;
-        let si = self.radiance_input(x, dirs, &o, 0..x.len());
+        let si = self.radiance_input(backend, x, dirs, &o, 0..x.len())?;
         let fwd = backend.mlp_forward(&self.radiance, &backend.upload(self.radiance_split().1), &backend.from_vec(si), false)?;
         let out = backend.to_vec(&fwd.output)?;
         Ok(out.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
@@ -864,7 +910,7 @@ pub fn loss_and_grad(
     jitter: f32,
 ) -> Result<StepGrad, BackendError> {
     let (stats, d_sdf, d_radiance) = loss_and_grad_tensors(backend, model, trace_cfg, batch, eik_points, ls, jitter)?;
-    Ok(StepGrad { stats, d_sdf: sdf_grad_to_host(backend, d_sdf)?, d_radiance })
+    Ok(StepGrad { stats, d_sdf: sdf_grad_to_host(backend, d_sdf)?, d_radiance: radiance_grad_to_host(backend, d_radiance)? })
 }
 
 /// The SDF's parameter gradient as one host vector (one wait for both halves on wgpu).
@@ -877,9 +923,23 @@ pub fn sdf_grad_to_host(backend: &Backend, d: [Tensor; 2]) -> Result<Vec<f32>, B
     Ok(a)
 }
 
-/// The SDF's part of a step's gradient, `[encoding, MLP]`, where the field computed it
-/// ([`SdfField::value_and_grad_tensors`]), the statistics and the radiance net's (host) part.
-type StepGradTensors = (StepStats, [Tensor; 2], Vec<f32>);
+/// The radiance net's gradient, `(appearance grid, MLP)`: the grid's where it was computed (the
+/// device while [`Model::pin_appearance`] holds), the MLP's on the host.
+type RadianceGrad = (Tensor, Vec<f32>);
+
+/// [`RadianceGrad`] as one host vector, in `Model::radiance_params`' order.
+fn radiance_grad_to_host(backend: &Backend, (grid, mlp): RadianceGrad) -> Result<Vec<f32>, BackendError> {
+    let mut d = match grid {
+        Tensor::Host(v) => v,
+        t => backend.to_vec(&t)?,
+    };
+    d.extend(mlp);
+    Ok(d)
+}
+
+/// A step's statistics and gradient: the SDF's `[encoding, MLP]` where the field computed it
+/// ([`SdfField::value_and_grad_tensors`]) and the radiance net's.
+type StepGradTensors = (StepStats, [Tensor; 2], RadianceGrad);
 
 /// [`loss_and_grad`] with the SDF's gradient left on the device.
 fn loss_and_grad_tensors(
@@ -955,7 +1015,7 @@ fn loss_and_grad_tensors(
     evals += 7 * (ns + nm + ne);
     let inv_b = 1.0 / nrays.max(1) as f64;
     let mut parts = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0.0f64); // rgb, eik, mask, sq err, smoothness
-    let mut d_radiance: Result<Vec<f32>, BackendError> = Ok(Vec::new());
+    let mut d_radiance: Result<Option<RadianceGrad>, BackendError> = Ok(None);
     let rad_params = backend.upload(model.radiance_split().1);
     let (_, d_sdf) = model.field.value_and_grad_tensors(backend, &model.sdf_params, &pts, |o: &FieldOutputs| {
         let n = ns + nm + ne;
@@ -963,8 +1023,8 @@ fn loss_and_grad_tensors(
         let mut g = FieldOutputGrads { sdf: vec![0.0; n], gradient: vec![0.0; 3 * n], feature: vec![0.0; n * fd] };
         // Colour.
         if ns > 0 {
-            let si = model.radiance_input(&x0, &dirs, o, 0..ns);
             let r = (|| {
+                let si = model.radiance_input(backend, &x0, &dirs, o, 0..ns)?;
                 let fwd = backend.mlp_forward(&model.radiance, &rad_params, &backend.from_vec(si), true)?;
                 let c = backend.to_vec(&fwd.output)?;
                 let mut dc = vec![0f32; 3 * ns];
@@ -992,7 +1052,7 @@ fn loss_and_grad_tensors(
                         g.sdf[k] += -s_term / gdotv;
                     }
                 }
-                model.radiance_backward(backend, &rad_params, &fwd, dc, &x0, ls.normal_gradient_scale, &mut g)
+                model.radiance_backward(backend, &rad_params, &fwd, dc, &x0, ls.normal_gradient_scale, &mut g).map(Some)
             })();
             d_radiance = r;
         }
@@ -1018,8 +1078,7 @@ fn loss_and_grad_tensors(
         }
         (parts.0 + parts.1 + parts.2 + parts.4, g)
     })?;
-    let d_radiance = d_radiance?;
-    let d_radiance = if d_radiance.is_empty() { vec![0.0; model.radiance_params.len()] } else { d_radiance };
+    let d_radiance = d_radiance?.unwrap_or_else(|| model.zero_radiance_grad());
     let mse = if ns > 0 { parts.3 / (3 * ns) as f64 } else { f64::NAN };
     let stats = StepStats {
         loss: parts.0 + parts.1 + parts.2 + parts.4,
@@ -1119,7 +1178,7 @@ pub fn volume_loss_and_grad(
     vs: &VolumeSettings,
 ) -> Result<StepGrad, BackendError> {
     let (stats, d_sdf, d_radiance) = volume_loss_and_grad_tensors(backend, model, batch, vsm, eik_points, ls, vs)?;
-    Ok(StepGrad { stats, d_sdf: sdf_grad_to_host(backend, d_sdf)?, d_radiance })
+    Ok(StepGrad { stats, d_sdf: sdf_grad_to_host(backend, d_sdf)?, d_radiance: radiance_grad_to_host(backend, d_radiance)? })
 }
 
 /// [`volume_loss_and_grad`] with the SDF's gradient left on the device.
@@ -1145,7 +1204,7 @@ fn volume_loss_and_grad_tensors(
     evals += 7 * (np + ne);
     let inv_b = 1.0 / nrays.max(1) as f64;
     let mut parts = (0.0f64, 0.0f64, 0.0f64, 0.0f64, 0usize); // rgb, eik, mask, sq err, colour rays
-    let mut d_radiance: Result<Vec<f32>, BackendError> = Ok(Vec::new());
+    let mut d_radiance: Result<Option<RadianceGrad>, BackendError> = Ok(None);
     let rad_params = backend.upload(model.radiance_split().1);
     let (_, d_sdf) = model.field.value_and_grad_tensors(backend, &model.sdf_params, &pts, |o: &FieldOutputs| {
         let n = np + ne;
@@ -1153,7 +1212,7 @@ fn volume_loss_and_grad_tensors(
         let mut g = FieldOutputGrads { sdf: vec![0.0; n], gradient: vec![0.0; 3 * n], feature: vec![0.0; n * fd] };
         if np > 0 {
             let r = (|| {
-                let si = model.radiance_input(x, dirs, o, 0..np);
+                let si = model.radiance_input(backend, x, dirs, o, 0..np)?;
                 let fwd = backend.mlp_forward(&model.radiance, &rad_params, &backend.from_vec(si), true)?;
                 let c = backend.to_vec(&fwd.output)?;
                 let mut dc = vec![0f32; 3 * np];
@@ -1186,7 +1245,7 @@ fn volume_loss_and_grad_tensors(
                         }
                     }
                 }
-                model.radiance_backward(backend, &rad_params, &fwd, dc, x, ls.normal_gradient_scale, &mut g)
+                model.radiance_backward(backend, &rad_params, &fwd, dc, x, ls.normal_gradient_scale, &mut g).map(Some)
             })();
             d_radiance = r;
         }
@@ -1194,8 +1253,7 @@ fn volume_loss_and_grad_tensors(
         parts.1 += eikonal(&o.gradient, &eik_idx, ls.eikonal_weight, &mut g.gradient);
         (parts.0 + parts.1 + parts.2, g)
     })?;
-    let d_radiance = d_radiance?;
-    let d_radiance = if d_radiance.is_empty() { vec![0.0; model.radiance_params.len()] } else { d_radiance };
+    let d_radiance = d_radiance?.unwrap_or_else(|| model.zero_radiance_grad());
     let mse = if parts.4 > 0 { parts.3 / (3 * parts.4) as f64 } else { f64::NAN };
     let stats = StepStats {
         loss: parts.0 + parts.1 + parts.2,
@@ -1262,17 +1320,24 @@ pub struct Trainer {
     /// Steps skipped because their gradient held NaN/Inf.
     pub skipped: u64,
     host: Backend,
-    device: Option<DeviceSdf>,
+    device: Option<DeviceParams>,
 }
 
-/// The SDF's parameters and Adam moments on the device ([`Stage1Config::device_optimiser`]),
-/// split as the field splits them, `[encoding, MLP]`.
+/// The parameters and Adam moments a wgpu run keeps on the device
+/// ([`Stage1Config::device_optimiser`]): the SDF's, split as the field splits them,
+/// `[encoding, MLP]`, and the appearance grid's where it has one.
 #[derive(Debug)]
-struct DeviceSdf {
+struct DeviceParams {
     backend: Backend,
     params: [Tensor; 2],
     adam: [AdamState; 2],
-    /// The host copies (`Model::sdf_params`, `Trainer::adam_sdf`) hold the device's values.
+    /// The appearance grid (the first `appearance_len` radiance parameters) and its moments.
+    appearance: Option<(Tensor, AdamState)>,
+    appearance_len: usize,
+    /// The moments of the radiance parameters the host updates (`radiance_params[appearance_len..]`).
+    radiance_adam: AdamState,
+    /// The host copies (`Model::sdf_params`, the appearance grid in `Model::radiance_params`,
+    /// `Trainer::adam_sdf`, `Trainer::adam_radiance`) hold the device's values.
     host_current: bool,
 }
 
@@ -1330,18 +1395,22 @@ impl Trainer {
         let Some(d) = self.device.as_mut().filter(|d| !d.host_current) else {
             return Ok(());
         };
-        let [p0, p1, m0, m1, v0, v1]: [Vec<f32>; 6] = d
+        let empty = Tensor::Host(Vec::new());
+        let (ga, gm, gv) = d.appearance.as_ref().map_or((&empty, &empty, &empty), |(p, a)| (p, &a.m, &a.v));
+        let [p0, p1, m0, m1, v0, v1, pa, ma, va]: [Vec<f32>; 9] = d
             .backend
-            .to_vecs(&[&d.params[0], &d.params[1], &d.adam[0].m, &d.adam[1].m, &d.adam[0].v, &d.adam[1].v])?
+            .to_vecs(&[&d.params[0], &d.params[1], &d.adam[0].m, &d.adam[1].m, &d.adam[0].v, &d.adam[1].v, ga, gm, gv])?
             .try_into()
-            .map_err(|_| BackendError::Map("device SDF readback count".into()))?;
-        let cat = |mut a: Vec<f32>, b: Vec<f32>| {
-            a.extend(b);
+            .map_err(|_| BackendError::Map("device parameters: readback count".into()))?;
+        let cat = |mut a: Vec<f32>, b: &[f32]| {
+            a.extend_from_slice(b);
             a
         };
-        let params = cat(p0, p1);
-        self.model.sdf_params.copy_from_slice(&params);
-        self.adam_sdf = AdamState { m: Tensor::Host(cat(m0, m1)), v: Tensor::Host(cat(v0, v1)), step: d.adam[0].step };
+        self.model.sdf_params.copy_from_slice(&cat(p0, &p1));
+        self.adam_sdf = AdamState { m: Tensor::Host(cat(m0, &m1)), v: Tensor::Host(cat(v0, &v1)), step: d.adam[0].step };
+        self.model.radiance_params[..pa.len()].copy_from_slice(&pa);
+        let r = &d.radiance_adam;
+        self.adam_radiance = AdamState { m: Tensor::Host(cat(ma, r.m.host()?)), v: Tensor::Host(cat(va, r.v.host()?)), step: r.step };
         d.host_current = true;
         Ok(())
     }
@@ -1352,7 +1421,7 @@ impl Trainer {
     }
 
     /// The device copies, made from the host's on first use.
-    fn device_sdf(&mut self, backend: &Backend) -> Result<&mut DeviceSdf, BackendError> {
+    fn device_params(&mut self, backend: &Backend) -> Result<&mut DeviceParams, BackendError> {
         if self.device.is_none() {
             let split = self.model.field.encoder.num_params();
             let (m, v) = (self.adam_sdf.m.host()?, self.adam_sdf.v.host()?);
@@ -1364,10 +1433,21 @@ impl Trainer {
             let [m0, m1] = ms;
             let [v0, v1] = vs;
             let step = self.adam_sdf.step;
-            self.device = Some(DeviceSdf {
+            // The appearance grid leads the radiance parameters; the rest stays on the host.
+            let grid = if self.model.appearance_on_device(backend) { self.model.radiance_split().0.len() } else { 0 };
+            let (rm, rv, rstep) = (self.adam_radiance.m.host()?, self.adam_radiance.v.host()?, self.adam_radiance.step);
+            let appearance = (grid > 0).then(|| {
+                let a = AdamState { m: backend.upload(&rm[..grid]), v: backend.upload(&rv[..grid]), step: rstep };
+                (backend.upload(&self.model.radiance_params[..grid]), a)
+            });
+            let radiance_adam = AdamState { m: Tensor::Host(rm[grid..].to_vec()), v: Tensor::Host(rv[grid..].to_vec()), step: rstep };
+            self.device = Some(DeviceParams {
                 backend: backend.clone(),
                 params: halves(&self.model.sdf_params),
                 adam: [AdamState { m: m0, v: v0, step }, AdamState { m: m1, v: v1, step }],
+                appearance,
+                appearance_len: grid,
+                radiance_adam,
                 host_current: true,
             });
         }
@@ -1429,13 +1509,17 @@ impl Trainer {
         let jitter = rng.random_range(0.0f32..1.0);
         let device = self.on_device(backend);
         if device {
-            self.device_sdf(backend)?;
+            self.device_params(backend)?;
         }
         // The SDF's parameters stay put until Adam: their device copy is used as is (on the
         // device path it is the only current one).
         let pin = match &self.device {
             Some(d) if device => self.model.field.pin_device(&self.model.sdf_params, [d.params[0].device()?, d.params[1].device()?])?,
             _ => self.model.field.pin(backend, &self.model.sdf_params)?,
+        };
+        let appearance_pin = match self.device.as_ref().and_then(|d| d.appearance.as_ref()) {
+            Some((p, _)) if device => Some(self.model.pin_appearance(p.device()?)),
+            _ => None,
         };
         let (stats, d_sdf, d_radiance) = match volume {
             None => loss_and_grad_tensors(backend, &self.model, &self.cfg.trace, &batch, &eik, &ls, jitter)?,
@@ -1451,7 +1535,7 @@ impl Trainer {
                 volume_loss_and_grad_tensors(backend, &self.model, &batch, &vsm, &eik, &ls, &vs)?
             }
         };
-        drop(pin);
+        drop((pin, appearance_pin));
         let f = self.cfg.lr_factor(self.step);
         let warm = (self.step as f32) < self.cfg.radiance_warmup * self.cfg.iterations as f32;
         let (lf, lr) = (if warm { 0.0 } else { self.cfg.lr_field * f }, self.cfg.lr_radiance * f);
@@ -1461,27 +1545,39 @@ impl Trainer {
         } else if device {
             self.apply_device(d_sdf, d_radiance, lf, lr)?
         } else {
-            self.apply(sdf_grad_to_host(backend, d_sdf)?, d_radiance, lf, lr)?
+            self.apply(sdf_grad_to_host(backend, d_sdf)?, radiance_grad_to_host(backend, d_radiance)?, lf, lr)?
         };
         self.step += 1;
         Ok(StepStats { step: self.step, applied, grad_norm: norm, lr_field: lf, ..stats })
     }
 
-    /// [`Trainer::apply`] with the SDF's gradient, parameters and moments on the device: one
-    /// wait for the gradient's statistics (over both parts, so a non-finite value anywhere skips
-    /// the whole step), then Adam queued there and run on the host for the radiance net.
-    fn apply_device(&mut self, d_sdf: [Tensor; 2], d_radiance: Vec<f32>, lr_field: f32, lr_radiance: f32) -> Result<(bool, f64), BackendError> {
+    /// [`Trainer::apply`] with the SDF's and the appearance grid's gradients, parameters and
+    /// moments on the device: one wait for the gradient's statistics (over every part, so a
+    /// non-finite value anywhere skips the whole step), then Adam queued there and run on the
+    /// host for the rest of the radiance net.
+    fn apply_device(&mut self, d_sdf: [Tensor; 2], (d_grid, d_mlp): RadianceGrad, lr_field: f32, lr_radiance: f32) -> Result<(bool, f64), BackendError> {
         let cfg = self.adam();
         let d = self.device.as_mut().ok_or_else(|| BackendError::Config("stage 1: no device copy of the SDF".into()))?;
-        let Some(norm) = combined_norm(&d.backend, &[&d_sdf[0], &d_sdf[1]], &[&d_radiance])? else {
+        // The grid's gradient is on the device where the grid is (a step without surface rays
+        // gives host zeros); otherwise it joins the host's part.
+        let (d_grid, d_host) = match (d_grid, &d.appearance) {
+            (Tensor::Host(v), Some(_)) => (Some(d.backend.upload(&v)), d_mlp),
+            (t @ Tensor::Device(_), Some(_)) => (Some(t), d_mlp),
+            (t, None) => (None, radiance_grad_to_host(&d.backend, (t, d_mlp))?),
+        };
+        let device_grads: Vec<&Tensor> = [&d_sdf[0], &d_sdf[1]].into_iter().chain(d_grid.as_ref()).collect();
+        let Some(norm) = combined_norm(&d.backend, &device_grads, &[&d_host])? else {
             self.skipped += 1;
             return Ok((false, f64::NAN));
         };
-        let DeviceSdf { backend, params: [p0, p1], adam: [a0, a1], .. } = d;
+        let DeviceParams { backend, params: [p0, p1], adam: [a0, a1], appearance, appearance_len, radiance_adam, .. } = d;
         let mut items = [AdamItem { params: p0, grads: &d_sdf[0], state: a0 }, AdamItem { params: p1, grads: &d_sdf[1], state: a1 }];
         backend.adam_apply(&cfg, &mut items, lr_field, norm)?;
+        if let (Some((p, a)), Some(g)) = (appearance.as_mut(), d_grid.as_ref()) {
+            backend.adam_apply(&cfg, &mut [AdamItem { params: p, grads: g, state: a }], lr_radiance, norm)?;
+        }
+        adam_host(&cfg, &mut self.model.radiance_params[*appearance_len..], d_host, radiance_adam, lr_radiance)?;
         d.host_current = false;
-        adam_host(&cfg, &mut self.model.radiance_params, d_radiance, &mut self.adam_radiance, lr_radiance)?;
         Ok((true, norm))
     }
 
@@ -1503,7 +1599,7 @@ impl Trainer {
         // One state per parameter tensor: the device's two halves, or the host's whole vector.
         let device = self.on_device(backend);
         let mut fit_state: Vec<AdamState> = if device {
-            self.device_sdf(backend)?.params.iter().map(|p| AdamState::new(backend, p.len())).collect()
+            self.device_params(backend)?.params.iter().map(|p| AdamState::new(backend, p.len())).collect()
         } else {
             // The host copy is trained: it becomes the only current one.
             self.sync_host()?;
