@@ -106,6 +106,12 @@ fn stage_two_resumes_exactly_exports_and_relights() {
     let mv: serde_json::Value = serde_json::from_str(&m).unwrap();
     let mae = mv["normal"]["mae_degrees"].as_f64().unwrap();
     assert!(mae < 40.0, "normal error {mae} degrees: {m}");
+    // A quick look at half size.
+    let half = dir.path().join("relit_half");
+    let o = pii(&["relight", a.to_str().unwrap(), "--env", env.to_str().unwrap(), "--lobes", "8", "--max-views", "1", "--downscale", "2", "--out", half.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    let (w, h) = image::image_dimensions(rel.join("test/r_000_relit_sunset.png")).unwrap();
+    assert_eq!(image::image_dimensions(half.join("test/r_000_relit_sunset.png")).unwrap(), (w / 2, h / 2));
 }
 
 #[test]

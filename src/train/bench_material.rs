@@ -148,7 +148,7 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
             };
             if has_gt && args.relight_views > 0 {
                 let rel = dir.join("relit");
-                let ra = super::relight::RelightArgs { run: dir.clone(), env: maps.clone(), cameras: None, out: rel.clone(), lobes: 32, convention: crate::sg::env::LatlongConvention::Blender, max_views: args.relight_views, samples: 2 };
+                let ra = super::relight::RelightArgs { run: dir.clone(), env: maps.clone(), cameras: None, out: rel.clone(), lobes: 32, convention: crate::sg::env::LatlongConvention::Blender, max_views: args.relight_views, samples: 2, downscale: crate::scene::Downscale::By(1) };
                 super::relight::run(&ra, ctx)?;
                 let metrics = dir.join("metrics.json");
                 let ea = crate::eval::cli::EvalArgs { gt: scene.clone(), pred: rel, out: Some(metrics.clone()), mesh_samples: 1000, gt_mesh: None, pred_mesh: None, gt_env: None, pred_env: None };

@@ -59,6 +59,11 @@ pub struct RelightArgs {
     /// fraction, colour = the mean over covered sub-pixels), as a renderer's pixel filter does.
     #[arg(long, default_value_t = 2)]
     pub samples: usize,
+    /// Render at 1/N of the cameras' size (`auto`: the factor the run was trained at, beyond
+    /// which a render shows no more detail). Full size (1, the default) is what `eval` compares
+    /// with full-size ground truth; a smaller factor makes a quick look at a large capture.
+    #[arg(long, default_value_t = Downscale::By(1))]
+    pub downscale: Downscale,
 }
 
 /// The run folder behind a run-or-asset path.
@@ -244,7 +249,11 @@ pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
     }
     let scene_path = args.cameras.clone().unwrap_or_else(|| s1.run_scene.scene.clone());
     // The views the run left out are left out of the normalisation here too (the frame must be the run's).
-    let scene = crate::scene::load(&scene_path, &ReadOptions { downscale: Downscale::By(1), keep_all_views: s1.trainer.cfg.keep_all_views })?;
+    let downscale = match args.downscale {
+        Downscale::Auto => s1.trainer.cfg.downscale.max(1),
+        Downscale::By(n) => n.max(1),
+    };
+    let scene = crate::scene::load(&scene_path, &ReadOptions { downscale: Downscale::By(downscale), keep_all_views: s1.trainer.cfg.keep_all_views })?;
     let mut views: Vec<&View> = scene.views_in(Split::Test).collect();
     // A test camera the silhouette check left out of training is still one the caller asked for.
     let excluded: Vec<&View> = scene.excluded.iter().filter(|v| v.split == Split::Test).collect();
@@ -296,6 +305,7 @@ pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
     let report = serde_json::json!({
         "run": run_dir.display().to_string(),
         "cameras": scene_path.display().to_string(),
+        "downscale": downscale,
         "views": views.iter().map(|v| v.name.clone()).collect::<Vec<_>>(),
         "maps": maps.iter().map(|(s, l, t)| serde_json::json!({ "name": s, "lobes": l.len(), "fit_seconds": t })).collect::<Vec<_>>(),
         "convention": args.convention,

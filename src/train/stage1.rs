@@ -914,7 +914,7 @@ pub fn loss_and_grad(
 }
 
 /// The SDF's parameter gradient as one host vector (one wait for both halves on wgpu).
-pub fn sdf_grad_to_host(backend: &Backend, d: [Tensor; 2]) -> Result<Vec<f32>, BackendError> {
+fn sdf_grad_to_host(backend: &Backend, d: [Tensor; 2]) -> Result<Vec<f32>, BackendError> {
     let (mut a, b) = match d {
         [Tensor::Host(a), Tensor::Host(b)] => (a, b),
         [a, b] => backend.to_vec2(&a, &b)?,
