@@ -25,6 +25,7 @@ use crate::context::Context;
 use crate::nn::encoding::EncodingConfig;
 use crate::nn::field::SdfFieldConfig;
 use crate::nn::mlp::{Init, Mlp, Real};
+use crate::util::thread_cpu_seconds;
 
 #[derive(Debug, clap::Args)]
 pub struct BenchNnArgs {
@@ -69,8 +70,6 @@ struct LaunchCost {
     /// One launch, then a 4-byte readback, waited for: the best of the rounds.
     round_trip_us: f64,
 }
-
-use crate::util::thread_cpu_seconds;
 
 fn launch_cost(g: &crate::backend::GpuContext, device: String, launches: usize, iters: usize) -> anyhow::Result<LaunchCost> {
     use crate::backend::gpu::util_kernels::axpy;

@@ -505,7 +505,8 @@ impl SdfField {
 
     fn pin_copies<'a>(&'a self, params: &'a [f32], copies: [Option<&GpuBuffer>; 2]) -> Result<PinnedParams<'a>, BackendError> {
         let (pe, pm) = self.split(params)?;
-        let pairs: Vec<(&[f32], &GpuBuffer)> = [pe, pm].into_iter().zip(copies).filter_map(|(p, t)| Some((p, t?))).filter(|(p, _)| !p.is_empty()).collect();
+        let pairs: Vec<(&[f32], &GpuBuffer)> =
+            [pe, pm].into_iter().zip(copies).filter_map(|(p, t)| Some((p, t?))).filter(|(p, _)| !p.is_empty()).collect();
         if let Some((p, t)) = pairs.iter().find(|(p, t)| t.len != p.len()) {
             return Err(BackendError::Shape(format!("pinned copy: {} values for {} parameters", t.len, p.len())));
         }

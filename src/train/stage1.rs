@@ -205,8 +205,8 @@ pub struct Stage1Config {
     pub sparse_adam: bool,
     /// On wgpu, keep the SDF's and the appearance grid's parameters and Adam moments on the
     /// device and run Adam there (see the module docs): a step then neither reads the grids'
-    /// dense gradients back nor uploads their parameters. Where some evaluation would read the host copy (an encoding that
-    /// runs on the host), the host path is used whatever this says.
+    /// dense gradients back nor uploads their parameters. Where some evaluation would read the
+    /// host copy (an encoding that runs on the host), the host path is used whatever this says.
     #[serde(default = "yes")]
     pub device_optimiser: bool,
     pub seed: u64,
@@ -941,7 +941,8 @@ fn radiance_grad_to_host(backend: &Backend, (grid, mlp): RadianceGrad) -> Result
 /// ([`SdfField::value_and_grad_tensors`]) and the radiance net's.
 type StepGradTensors = (StepStats, [Tensor; 2], RadianceGrad);
 
-/// [`loss_and_grad`] with the SDF's gradient left on the device.
+/// [`loss_and_grad`] with the grids' gradients left where they were computed (the device on
+/// the device path).
 fn loss_and_grad_tensors(
     backend: &Backend,
     model: &Model,
@@ -1181,7 +1182,7 @@ pub fn volume_loss_and_grad(
     Ok(StepGrad { stats, d_sdf: sdf_grad_to_host(backend, d_sdf)?, d_radiance: radiance_grad_to_host(backend, d_radiance)? })
 }
 
-/// [`volume_loss_and_grad`] with the SDF's gradient left on the device.
+/// [`volume_loss_and_grad`] with the grids' gradients left where they were computed.
 fn volume_loss_and_grad_tensors(
     backend: &Backend,
     model: &Model,
@@ -1334,20 +1335,36 @@ struct DeviceParams {
     /// The appearance grid (the first `appearance_len` radiance parameters) and its moments.
     appearance: Option<(Tensor, AdamState)>,
     appearance_len: usize,
-    /// The moments of the radiance parameters the host updates (`radiance_params[appearance_len..]`).
+    /// The moments of the radiance parameters the host updates
+    /// (`radiance_params[appearance_len..]`).
     radiance_adam: AdamState,
     /// The host copies (`Model::sdf_params`, the appearance grid in `Model::radiance_params`,
     /// `Trainer::adam_sdf`, `Trainer::adam_radiance`) hold the device's values.
     host_current: bool,
 }
 
-/// The statistics of the gradient of one step on the device path: the device gradient's, plus
-/// the host tensors'. `None` when any value is non-finite.
+/// The norm of one step's gradient on the device path, over its device and its host tensors;
+/// `None` when any value is non-finite.
 fn combined_norm(backend: &Backend, device: &[&Tensor], host: &[&[f32]]) -> Result<Option<f64>, BackendError> {
     let (sq_dev, bad_dev) = backend.adam_grad_stats(device)?;
     let Some(h) = host_grad_norm(host) else { return Ok(None) };
     let sq = sq_dev + h * h;
     Ok((bad_dev == 0 && sq.is_finite()).then(|| sq.sqrt()))
+}
+
+/// Queue Adam on the SDF's two device halves with `states` (the run's moments, or the hull
+/// fit's own).
+fn adam_sdf_on_device(
+    backend: &Backend,
+    cfg: &AdamConfig,
+    [p0, p1]: &mut [Tensor; 2],
+    grads: &[Tensor; 2],
+    [a0, a1]: [&mut AdamState; 2],
+    lr: f32,
+    norm: f64,
+) -> Result<(), BackendError> {
+    let mut items = [AdamItem { params: p0, grads: &grads[0], state: a0 }, AdamItem { params: p1, grads: &grads[1], state: a1 }];
+    backend.adam_apply(cfg, &mut items, lr, norm).map(|_| ())
 }
 
 /// Checkpoint file names inside a run folder.
@@ -1364,7 +1381,7 @@ impl Trainer {
         Ok(Self { cfg, model, adam_sdf, adam_radiance, step: 0, skipped: 0, host, device: None })
     }
 
-    /// The model. Its SDF parameters are the host copy: after training on wgpu call
+    /// The model. Its grids' parameters are the host copy: after training on wgpu call
     /// [`Trainer::sync_host`] first (reading a stale copy is a bug and panics).
     pub fn model(&self) -> &Model {
         assert!(self.device.as_ref().is_none_or(|d| d.host_current), "stage 1: the SDF's newest parameters are on the device; call Trainer::sync_host first");
@@ -1373,9 +1390,15 @@ impl Trainer {
 
     /// The model to change: current on the host, which holds the only copy from here on.
     pub fn model_mut(&mut self) -> Result<&mut Model, BackendError> {
+        self.host_only()?;
+        Ok(&mut self.model)
+    }
+
+    /// Make the host copies current and the only ones (before the host changes them).
+    fn host_only(&mut self) -> Result<(), BackendError> {
         self.sync_host()?;
         self.device = None;
-        Ok(&mut self.model)
+        Ok(())
     }
 
     /// The model, current.
@@ -1384,13 +1407,13 @@ impl Trainer {
         Ok(self.model)
     }
 
-    /// Whether the SDF's newest parameters are on the device only.
+    /// Whether the newest parameters (the SDF's, the appearance grid's) are on the device only.
     pub fn host_is_stale(&self) -> bool {
         self.device.as_ref().is_some_and(|d| !d.host_current)
     }
 
-    /// Bring the host copies of the SDF's parameters and Adam moments up to the device's (one
-    /// wait; nothing to do on the host path).
+    /// Bring the host copies of the device's parameters and Adam moments (the SDF's, the
+    /// appearance grid's) up to date (one wait; nothing to do on the host path).
     pub fn sync_host(&mut self) -> Result<(), BackendError> {
         let Some(d) = self.device.as_mut().filter(|d| !d.host_current) else {
             return Ok(());
@@ -1420,6 +1443,15 @@ impl Trainer {
         self.cfg.device_optimiser && self.model.field.evaluates_on_device(backend)
     }
 
+    /// The SDF's parameters pinned for a step, until Adam changes them: on the device path to
+    /// the device copies (the only current ones), else to their device copy if there is one.
+    fn pin_sdf(&self, backend: &Backend, device: bool) -> Result<crate::nn::field::PinnedParams<'_>, BackendError> {
+        match &self.device {
+            Some(d) if device => self.model.field.pin_device(&self.model.sdf_params, [d.params[0].device()?, d.params[1].device()?]),
+            _ => self.model.field.pin(backend, &self.model.sdf_params),
+        }
+    }
+
     /// The device copies, made from the host's on first use.
     fn device_params(&mut self, backend: &Backend) -> Result<&mut DeviceParams, BackendError> {
         if self.device.is_none() {
@@ -1429,9 +1461,7 @@ impl Trainer {
                 let (a, b) = x.split_at(split);
                 [backend.upload(a), backend.upload(b)]
             };
-            let (ms, vs) = (halves(m), halves(v));
-            let [m0, m1] = ms;
-            let [v0, v1] = vs;
+            let ([m0, m1], [v0, v1]) = (halves(m), halves(v));
             let step = self.adam_sdf.step;
             // The appearance grid leads the radiance parameters; the rest stays on the host.
             let grid = if self.model.appearance_on_device(backend) { self.model.radiance_split().0.len() } else { 0 };
@@ -1461,8 +1491,7 @@ impl Trainer {
     /// Apply gradients (skipped and counted when any value is non-finite).
     pub fn apply(&mut self, d_sdf: Vec<f32>, d_radiance: Vec<f32>, lr_field: f32, lr_radiance: f32) -> Result<(bool, f64), BackendError> {
         // The host copies are updated: they become the only current ones.
-        self.sync_host()?;
-        self.device = None;
+        self.host_only()?;
         let Some(norm) = host_grad_norm(&[&d_sdf, &d_radiance]) else {
             self.skipped += 1;
             return Ok((false, f64::NAN));
@@ -1511,12 +1540,7 @@ impl Trainer {
         if device {
             self.device_params(backend)?;
         }
-        // The SDF's parameters stay put until Adam: their device copy is used as is (on the
-        // device path it is the only current one).
-        let pin = match &self.device {
-            Some(d) if device => self.model.field.pin_device(&self.model.sdf_params, [d.params[0].device()?, d.params[1].device()?])?,
-            _ => self.model.field.pin(backend, &self.model.sdf_params)?,
-        };
+        let pin = self.pin_sdf(backend, device)?;
         let appearance_pin = match self.device.as_ref().and_then(|d| d.appearance.as_ref()) {
             Some((p, _)) if device => Some(self.model.pin_appearance(p.device()?)),
             _ => None,
@@ -1570,9 +1594,8 @@ impl Trainer {
             self.skipped += 1;
             return Ok((false, f64::NAN));
         };
-        let DeviceParams { backend, params: [p0, p1], adam: [a0, a1], appearance, appearance_len, radiance_adam, .. } = d;
-        let mut items = [AdamItem { params: p0, grads: &d_sdf[0], state: a0 }, AdamItem { params: p1, grads: &d_sdf[1], state: a1 }];
-        backend.adam_apply(&cfg, &mut items, lr_field, norm)?;
+        let DeviceParams { backend, params, adam: [a0, a1], appearance, appearance_len, radiance_adam, .. } = d;
+        adam_sdf_on_device(backend, &cfg, params, &d_sdf, [a0, a1], lr_field, norm)?;
         if let (Some((p, a)), Some(g)) = (appearance.as_mut(), d_grid.as_ref()) {
             backend.adam_apply(&cfg, &mut [AdamItem { params: p, grads: g, state: a }], lr_radiance, norm)?;
         }
@@ -1602,8 +1625,7 @@ impl Trainer {
             self.device_params(backend)?.params.iter().map(|p| AdamState::new(backend, p.len())).collect()
         } else {
             // The host copy is trained: it becomes the only current one.
-            self.sync_host()?;
-            self.device = None;
+            self.host_only()?;
             vec![AdamState::new(&self.host, self.model.sdf_params.len())]
         };
         let h = grid.spacing();
@@ -1622,10 +1644,7 @@ impl Trainer {
                 .collect();
             let target: Vec<f32> = pts.iter().map(|&p| grid.sample(p).clamp(-clamp, clamp)).collect();
             let w = self.cfg.eikonal_weight as f64;
-            let pin = match &self.device {
-                Some(d) if device => self.model.field.pin_device(&self.model.sdf_params, [d.params[0].device()?, d.params[1].device()?])?,
-                _ => self.model.field.pin(backend, &self.model.sdf_params)?,
-            };
+            let pin = self.pin_sdf(backend, device)?;
             let (l, d) = self.model.field.value_and_grad_tensors(backend, &self.model.sdf_params, bytemuck::cast_slice(&pts), |o| {
                 let mut g = FieldOutputGrads { sdf: vec![0.0; n], gradient: vec![0.0; 3 * n], feature: vec![] };
                 let mut l = 0.0;
@@ -1655,9 +1674,7 @@ impl Trainer {
                         self.skipped += 1;
                         continue;
                     };
-                    let [p0, p1] = &mut dev.params;
-                    let mut items = [AdamItem { params: p0, grads: &d[0], state: a0 }, AdamItem { params: p1, grads: &d[1], state: a1 }];
-                    backend.adam_apply(&cfg, &mut items, lr, norm)?;
+                    adam_sdf_on_device(backend, &cfg, &mut dev.params, &d, [a0, a1], lr, norm)?;
                     dev.host_current = false;
                 }
                 (_, [a]) => {
