@@ -112,6 +112,34 @@ fn stage_two_resumes_exactly_exports_and_relights() {
     assert!(o.status.success(), "{}", text(&o));
     let (w, h) = image::image_dimensions(rel.join("test/r_000_relit_sunset.png")).unwrap();
     assert_eq!(image::image_dimensions(half.join("test/r_000_relit_sunset.png")).unwrap(), (w / 2, h / 2));
+    // eval scores it against the ground truth filtered to half size: the same model, so the same
+    // figures within what the smaller pixels forgive (this tiny model: 0.4-0.6 dB higher; the
+    // filter itself is checked by eval::cli's unit test).
+    let hm = dir.path().join("metrics_half.json");
+    let o = pii(&["eval", "--gt", ex.to_str().unwrap(), "--pred", half.to_str().unwrap(), "--out", hm.to_str().unwrap(), "--mesh-samples", "1000"]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("scored at 1/2"), "{}", text(&o));
+    let hv: serde_json::Value = serde_json::from_slice(&std::fs::read(&hm).unwrap()).unwrap();
+    assert_eq!(hv["downscale"], 2);
+    assert_eq!(mv["downscale"], 1);
+    for key in [["relit", "sunset", "psnr"], ["relit", "sunset", "psnr_aligned"], ["albedo", "psnr_aligned", ""], ["novel_view", "psnr", ""]] {
+        let get = |v: &serde_json::Value| {
+            let x = &v[key[0]][key[1]];
+            (if key[2].is_empty() { x } else { &x[key[2]] }).as_f64().unwrap()
+        };
+        let (full, small) = (get(&mv), get(&hv));
+        assert!((full - small).abs() < 1.5, "{key:?}: full size {full} dB, half size {small} dB");
+    }
+    let (full, small) = (mae, hv["normal"]["mae_degrees"].as_f64().unwrap());
+    assert!((full - small).abs() < 3.0, "normal error: full size {full}, half size {small} degrees");
+    let rough = |v: &serde_json::Value| v["roughness"]["mse"].as_f64().unwrap();
+    assert!((rough(&mv) - rough(&hv)).abs() < 0.01 + 0.2 * rough(&mv), "roughness MSE {} vs {}", rough(&mv), rough(&hv));
+    // A render at another size is refused, naming the file.
+    let odd = half.join("test/r_000_albedo.png");
+    image::RgbaImage::new(w / 3 + 1, h / 3).save(&odd).unwrap();
+    let o = pii(&["eval", "--gt", ex.to_str().unwrap(), "--pred", half.to_str().unwrap(), "--mesh-samples", "1000"]);
+    assert!(!o.status.success());
+    assert!(text(&o).contains("r_000_albedo.png") && text(&o).contains("render at its size or at 1/N of it"), "{}", text(&o));
 }
 
 #[test]

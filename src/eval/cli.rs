@@ -18,7 +18,10 @@
 //! latlong convention, resampled to the GT size if needed; `--gt-env/--pred-env` override), and Chamfer
 //! distance + normal consistency, GT `gt/mesh.obj` vs `mesh.obj` or `mesh.ply` (same world frame;
 //! `--gt-mesh/--pred-mesh` override). A metric whose prediction file is missing is skipped and listed
-//! under `missing`; a prediction whose size differs from the ground truth is an error.
+//! under `missing`. A prediction rendered at 1/N of the ground truth's size (`relight --downscale N`,
+//! the size `scene::downscale` gives: each side divided by N, rounded down) is scored against the
+//! ground truth box-filtered by N, colour and data weighted by alpha, and the report says so
+//! (`downscale`: N, 1 at full size); any other size, or a folder that mixes factors, is an error.
 //! PNGs are sRGB colour (roughness PNGs are linear values); EXRs are linear.
 
 use std::path::{Path, PathBuf};
@@ -59,14 +62,80 @@ fn find_pred(base: &Path) -> Option<PathBuf> {
     ["png", "exr"].iter().map(|e| base.with_extension(e)).find(|p| p.is_file())
 }
 
-fn same_size(pred: &ImageF32, gt: &ImageF32, pred_path: &Path, gt_path: &Path) -> Result<(), DataError> {
-    if (pred.width, pred.height) != (gt.width, gt.height) {
-        return Err(DataError::new(
-            pred_path,
-            format!("prediction is {}x{} but the ground truth {} is {}x{}", pred.width, pred.height, gt_path.display(), gt.width, gt.height),
-        ));
+/// What scoring a folder collects beside the metrics: the predictions it did not find, and the one
+/// factor its images were rendered at (`gt` side / `pred` side).
+#[derive(Default)]
+struct Found {
+    missing: Vec<String>,
+    downscale: Option<usize>,
+}
+
+impl Found {
+    /// The factor N with `pred = gt / N` on both sides (rounded down, as `scene::downscale` and
+    /// `Camera::downscaled` size an image), checked to be the folder's one factor.
+    fn factor(&mut self, pred: (usize, usize), gt: (usize, usize), pred_path: &Path, gt_path: &Path) -> Result<usize, DataError> {
+        let n = if pred.0 > 0 { gt.0 / pred.0 } else { 0 };
+        let fits = n >= 1 && pred.1 > 0 && (gt.0 / n, gt.1 / n) == pred;
+        let size = |(w, h): (usize, usize)| format!("{w}x{h}");
+        if !fits {
+            return Err(DataError::new(
+                pred_path,
+                format!(
+                    "prediction is {} but the ground truth {} is {}: render at its size or at 1/N of it (relight --downscale N)",
+                    size(pred),
+                    gt_path.display(),
+                    size(gt)
+                ),
+            ));
+        }
+        match self.downscale {
+            Some(m) if m != n => Err(DataError::new(
+                pred_path,
+                format!("prediction is 1/{n} of the ground truth {}'s size, but other predictions in the folder are 1/{m}", gt_path.display()),
+            )),
+            _ => {
+                self.downscale = Some(n);
+                Ok(n)
+            }
+        }
     }
-    Ok(())
+}
+
+/// `values` (`channels` per pixel, `width`×`height`) box-filtered by `n` as `scene::downscale`
+/// reads photos, each value weighted by `alpha` where there is one (a silhouette pixel keeps the
+/// colour of what covers it and takes the covered share as its alpha, as a render at that size
+/// has it): `(values, alpha)` at 1/n.
+fn downscale_weighted(values: &[f32], channels: usize, (width, height): (usize, usize), alpha: Option<&[f32]>, n: usize) -> (Vec<f32>, Option<Vec<f32>>) {
+    let Some(alpha) = alpha else {
+        return (crate::scene::downscale(&ImageF32 { width, height, channels, data: values.to_vec() }, n).data, None);
+    };
+    let c = channels + 1;
+    let data = values.chunks_exact(channels).zip(alpha).flat_map(|(v, &a)| v.iter().map(move |x| x * a).chain([a])).collect();
+    let small = crate::scene::downscale(&ImageF32 { width, height, channels: c, data }, n);
+    let mut out = Vec::with_capacity(small.data.len() / c * channels);
+    let mut out_alpha = Vec::with_capacity(small.data.len() / c);
+    for p in small.data.chunks_exact(c) {
+        let a = p[channels];
+        out.extend(p[..channels].iter().map(|x| if a > 0.0 { x / a } else { 0.0 }));
+        out_alpha.push(a);
+    }
+    (out, Some(out_alpha))
+}
+
+/// A ground-truth image brought to the prediction's size `pred` (see `Found::factor`); RGBA is
+/// filtered with its colour weighted by alpha.
+fn fit_image(gt: ImageF32, pred: (usize, usize), found: &mut Found, pred_path: &Path, gt_path: &Path) -> Result<ImageF32, DataError> {
+    let n = found.factor(pred, (gt.width, gt.height), pred_path, gt_path)?;
+    if n == 1 {
+        return Ok(gt);
+    }
+    if gt.channels != 4 {
+        return Ok(crate::scene::downscale(&gt, n));
+    }
+    let (rgb, alpha) = downscale_weighted(&gt.rgb(), 3, (gt.width, gt.height), gt.alpha().as_deref(), n);
+    let alpha = alpha.unwrap_or_default();
+    let data = rgb.chunks_exact(3).zip(&alpha).flat_map(|(c, &a)| [c[0], c[1], c[2], a]).collect();
+    Ok(ImageF32 { width: pred.0, height: pred.1, channels: 4, data })
 }
 
 fn mean(v: &[f64]) -> Option<f64> {
@@ -126,24 +195,32 @@ fn scale_aligned_psnr(views: &[ViewImages]) -> ([f64; 3], Vec<f64>) {
 }
 
 /// A test view's ground truth `<gt>/<rel>.png` and its prediction `<pred>/<rel>` (`.png`/`.exr`),
-/// each with its path, read as linear and checked to be the same size: `(prediction, ground
+/// each with its path, read as linear, the ground truth at its own size: `(prediction, ground
 /// truth)`. None, with `rel` listed as missing, where there is no prediction.
-fn read_pair(gt: &Path, pred: &Path, rel: String, missing: &mut Vec<String>) -> Result<Option<[(ImageF32, PathBuf); 2]>, DataError> {
+fn read_pair(gt: &Path, pred: &Path, rel: String, found: &mut Found) -> Result<Option<[(ImageF32, PathBuf); 2]>, DataError> {
     let gp = gt.join(format!("{rel}.png"));
     let Some(pp) = find_pred(&pred.join(&rel)) else {
-        missing.push(rel);
+        found.missing.push(rel);
         return Ok(None);
     };
     let g = read_image_linear(&gp)?;
     let p = read_image_linear(&pp)?;
-    same_size(&p, &g, &pp, &gp)?;
     Ok(Some([(p, pp), (g, gp)]))
 }
 
-fn score_views(gt: &Path, pred: &Path, names: &[String], suffix: &str, missing: &mut Vec<String>) -> Result<ViewScores, DataError> {
+/// `read_pair` with the ground truth brought to the prediction's size (`fit_image`).
+fn read_fitted(gt: &Path, pred: &Path, rel: String, found: &mut Found) -> Result<Option<(ImageF32, ImageF32)>, DataError> {
+    let Some([(p, pp), (g, gp)]) = read_pair(gt, pred, rel, found)? else {
+        return Ok(None);
+    };
+    let g = fit_image(g, (p.width, p.height), found, &pp, &gp)?;
+    Ok(Some((p, g)))
+}
+
+fn score_views(gt: &Path, pred: &Path, names: &[String], suffix: &str, found: &mut Found) -> Result<ViewScores, DataError> {
     let mut s = ViewScores { psnr: vec![], ssim: vec![], per_view: vec![], images: vec![] };
     for name in names {
-        let Some([(p, _), (g, _)]) = read_pair(gt, pred, format!("test/{name}{suffix}"), missing)? else {
+        let Some((p, g)) = read_fitted(gt, pred, format!("test/{name}{suffix}"), found)? else {
             continue;
         };
         let mask = g.alpha();
@@ -167,20 +244,20 @@ pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
         return Err(DataError::new(pred, "prediction folder not found"));
     }
     let names = test_names(gt)?;
-    let mut missing = Vec::new();
+    let mut found = Found::default();
     let mut report = serde_json::Map::new();
     report.insert("gt".into(), json!(gt.display().to_string()));
     report.insert("pred".into(), json!(pred.display().to_string()));
     report.insert("test_views".into(), json!(names.len()));
 
-    let nv = score_views(gt, pred, &names, "", &mut missing)?;
+    let nv = score_views(gt, pred, &names, "", &mut found)?;
     if !nv.psnr.is_empty() {
         report.insert("novel_view".into(), json!({"views": nv.psnr.len(), "psnr": mean(&nv.psnr), "ssim": mean(&nv.ssim), "per_view": nv.per_view}));
     }
     let mut relit = serde_json::Map::new();
     if let Some(first) = names.first() {
         for env in relight_envs(gt, first) {
-            let r = score_views(gt, pred, &names, &format!("_relit_{env}"), &mut missing)?;
+            let r = score_views(gt, pred, &names, &format!("_relit_{env}"), &mut found)?;
             if !r.psnr.is_empty() {
                 let (scale, aligned) = scale_aligned_psnr(&r.images);
                 relit.insert(env, json!({"views": r.psnr.len(), "psnr": mean(&r.psnr), "ssim": mean(&r.ssim), "psnr_aligned": mean(&aligned), "scale": scale, "per_view": r.per_view}));
@@ -194,7 +271,7 @@ pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
     // Albedo: one per-channel scale over all views, then PSNR per view.
     let mut albedo = Vec::new();
     for name in &names {
-        let Some([(p, _), (g, _)]) = read_pair(gt, pred, format!("test/{name}_albedo"), &mut missing)? else {
+        let Some((p, g)) = read_fitted(gt, pred, format!("test/{name}_albedo"), &mut found)? else {
             continue;
         };
         albedo.push((p.rgb(), g.rgb(), g.alpha()));
@@ -209,15 +286,14 @@ pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
         let rel = format!("test/{name}_roughness");
         let gp = gt.join(format!("{rel}.png"));
         let Some(pp) = find_pred(&pred.join(&rel)) else {
-            missing.push(rel);
+            found.missing.push(rel);
             continue;
         };
         let (gw, gh, gv) = read_mask(&gp)?;
         let (pw, ph, pv) = read_mask(&pp)?;
-        if (gw, gh) != (pw, ph) {
-            return Err(DataError::new(&pp, format!("prediction is {pw}x{ph} but the ground truth {} is {gw}x{gh}", gp.display())));
-        }
         let alpha = read_image_linear(&gp)?.alpha();
+        let n = found.factor((pw, ph), (gw, gh), &pp, &gp)?;
+        let (gv, alpha) = if n == 1 { (gv, alpha) } else { downscale_weighted(&gv, 1, (gw, gh), alpha.as_deref(), n) };
         rough.push(weighted_mse(&pv, &gv, 1, alpha.as_deref()));
     }
     if !rough.is_empty() {
@@ -231,10 +307,14 @@ pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
         if !gt.join(format!("{rel}.png")).is_file() {
             continue;
         }
-        let Some([(p, pp), (g, gp)]) = read_pair(gt, pred, rel, &mut missing)? else {
+        let Some([(p, pp), (g, gp)]) = read_pair(gt, pred, rel, &mut found)? else {
             continue;
         };
-        if let Some(e) = normal_error_degrees((&stored_values(&p, &pp), p.alpha()), (&stored_values(&g, &gp), g.alpha())) {
+        // Filtered as stored (n·0.5 + 0.5 is linear in n; the angle renormalises the mean).
+        let n = found.factor((p.width, p.height), (g.width, g.height), &pp, &gp)?;
+        let (gn, ga) = (stored_values(&g, &gp), g.alpha());
+        let (gn, ga) = if n == 1 { (gn, ga) } else { downscale_weighted(&gn, 3, (g.width, g.height), ga.as_deref(), n) };
+        if let Some(e) = normal_error_degrees((&stored_values(&p, &pp), p.alpha()), (&gn, ga)) {
             normal.push(e);
         }
     }
@@ -254,7 +334,7 @@ pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
         let e = env_error(&p3, &g3, g.width, g.height);
         report.insert("env".into(), serde_json::to_value(e).unwrap_or(Value::Null));
     } else {
-        missing.push(pred_env.display().to_string());
+        found.missing.push(pred_env.display().to_string());
     }
 
     let gt_mesh = args.gt_mesh.clone().unwrap_or_else(|| gt.join("gt").join("mesh.obj"));
@@ -264,9 +344,12 @@ pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
             let m = compare_meshes(&Mesh::read(&pm)?, &Mesh::read(&gt_mesh)?, args.mesh_samples, 0);
             report.insert("mesh".into(), serde_json::to_value(m).unwrap_or(Value::Null));
         }
-        None => missing.push("mesh.obj / mesh.ply".into()),
+        None => found.missing.push("mesh.obj / mesh.ply".into()),
     }
-    report.insert("missing".into(), json!(missing));
+    if let Some(n) = found.downscale {
+        report.insert("downscale".into(), json!(n));
+    }
+    report.insert("missing".into(), json!(found.missing));
     Ok(Value::Object(report))
 }
 
@@ -310,6 +393,9 @@ pub fn run(args: &EvalArgs, ctx: &Context) -> anyhow::Result<()> {
     }
     ctx.emit("eval", report.clone());
     let f = |v: &Value| v.as_f64().map_or("-".to_string(), |x| format!("{x:.4}"));
+    if let Some(n) = report.get("downscale").and_then(Value::as_u64).filter(|&n| n > 1) {
+        ctx.say(format!("images scored at 1/{n} of the ground truth's size (the ground truth box-filtered by {n})"));
+    }
     if let Some(nv) = report.get("novel_view") {
         ctx.say(format!("novel view   PSNR {} dB  SSIM {}  ({} views)", f(&nv["psnr"]), f(&nv["ssim"]), nv["views"]));
     }
@@ -343,7 +429,47 @@ pub fn run(args: &EvalArgs, ctx: &Context) -> anyhow::Result<()> {
 
 #[cfg(test)]
 mod tests {
-    use super::normal_error_degrees;
+    use std::path::Path;
+
+    use super::{downscale_weighted, fit_image, normal_error_degrees, Found};
+    use crate::image_io::ImageF32;
+
+    #[test]
+    fn a_prediction_at_one_nth_is_scored_against_the_ground_truth_filtered_by_n() {
+        let (pp, gp) = (Path::new("pred.png"), Path::new("gt.png"));
+        // 5x4 RGBA: a red object over the left half of a 2x2 block, transparent (black) beside it.
+        let mut gt = ImageF32::new(5, 4, 4);
+        for y in 0..4 {
+            for x in 0..5 {
+                let px = &mut gt.data[(y * 5 + x) * 4..(y * 5 + x + 1) * 4];
+                if x % 2 == 0 {
+                    px.copy_from_slice(&[0.8, 0.1, 0.2, 1.0]);
+                }
+            }
+        }
+        let mut found = Found::default();
+        let small = fit_image(gt.clone(), (2, 2), &mut found, pp, gp).unwrap();
+        assert_eq!((small.width, small.height, small.channels), (2, 2, 4));
+        // Colour weighted by alpha keeps the object's colour; alpha is the covered share.
+        for p in small.data.chunks_exact(4) {
+            for (a, b) in p.iter().zip([0.8, 0.1, 0.2, 0.5]) {
+                assert!((a - b).abs() < 1e-6, "{p:?}");
+            }
+        }
+        assert_eq!(found.downscale, Some(2));
+        // Full size passes through only in a folder at full size; other sizes are refused.
+        assert!(found.factor((5, 4), (5, 4), pp, gp).unwrap_err().problem.contains("other predictions in the folder are 1/2"));
+        assert_eq!(Found::default().factor((5, 4), (5, 4), pp, gp).unwrap(), 1);
+        for bad in [(3, 2), (2, 3), (0, 0), (6, 4)] {
+            let e = Found::default().factor(bad, (5, 4), pp, gp).unwrap_err();
+            assert!(e.problem.contains("render at its size or at 1/N of it"), "{bad:?}: {}", e.problem);
+        }
+        // Without alpha, a plain box filter; an uncovered block has alpha 0 and colour 0.
+        let (v, a) = downscale_weighted(&[1.0, 3.0, 5.0, 7.0], 1, (2, 2), None, 2);
+        assert_eq!((v, a), (vec![4.0], None));
+        let (v, a) = downscale_weighted(&[1.0, 3.0, 5.0, 7.0], 1, (2, 2), Some(&[0.0; 4]), 2);
+        assert_eq!((v, a), (vec![0.0], Some(vec![0.0])));
+    }
 
     fn map(n: [f64; 3], pixels: usize) -> Vec<f32> {
         (0..pixels).flat_map(|_| n.map(|v| (v * 0.5 + 0.5) as f32)).collect()

@@ -60,8 +60,8 @@ pub struct RelightArgs {
     #[arg(long, default_value_t = 2)]
     pub samples: usize,
     /// Render at 1/N of the cameras' size (`auto`: the factor the run was trained at, beyond
-    /// which a render shows no more detail). Full size (1, the default) is what `eval` compares
-    /// with full-size ground truth; a smaller factor makes a quick look at a large capture.
+    /// which a render shows no more detail). Full size is the default; a smaller render is a quick
+    /// look at a large capture, which `eval` scores against the ground truth filtered to its size.
     #[arg(long, default_value_t = Downscale::By(1))]
     pub downscale: Downscale,
 }
