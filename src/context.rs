@@ -14,6 +14,8 @@ pub struct Context {
     pub adapter: Option<String>,
     pub json: bool,
     pub quiet: bool,
+    /// `--profile-kernels`: the wgpu backend times every kernel (`GpuContext::set_kernel_profile`).
+    pub profile_kernels: bool,
 }
 
 impl Context {
@@ -21,6 +23,12 @@ impl Context {
     pub fn backend(&self) -> anyhow::Result<Backend> {
         let b = Backend::select(self.backend_choice, self.adapter.as_deref())?;
         tracing::info!("backend: {}", b.describe());
+        if self.profile_kernels {
+            match b.gpu() {
+                Some(g) => g.set_kernel_profile(true)?,
+                None => tracing::warn!("--profile-kernels times wgpu kernels; the cpu backend has none to time"),
+            }
+        }
         Ok(b)
     }
 

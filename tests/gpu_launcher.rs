@@ -135,3 +135,40 @@ fn dispatches_that_share_a_pass_and_the_uniform_arena_see_each_others_writes_and
 fn shaders_util() -> &'static str {
     pii_bake::backend::gpu::shaders::with_lib(pii_bake::backend::gpu::shaders::UTIL)
 }
+
+#[test]
+fn the_kernel_profile_times_each_kernel_without_changing_results() {
+    let g = gpu();
+    if !g.supports_timestamps() {
+        let e = g.set_kernel_profile(true).unwrap_err();
+        assert!(e.to_string().contains("no timestamp queries"), "{e}");
+        eprintln!("{} has no timestamp queries: the profile's timing is not exercised here", g.info.name);
+        return;
+    }
+    let n = 1 << 20;
+    let x: Vec<f32> = (0..n).map(|i| (i % 97) as f32).collect();
+    let (xb, yb) = (g.upload_f32("x", &x), g.upload_f32("y", &vec![1.0; n]));
+    util_kernels::axpy(&g, 1.0, &xb, &yb).unwrap();
+    assert!(g.kernel_times().is_empty(), "off: nothing is recorded");
+    g.set_kernel_profile(true).unwrap();
+    let before = g.kernel_times();
+    // More dispatches than one query set holds, across several submissions.
+    for _ in 0..1100 {
+        util_kernels::axpy(&g, 0.5, &xb, &yb).unwrap();
+    }
+    let mid = g.read_f32(&yb).unwrap();
+    util_kernels::axpy(&g, -1.0, &xb, &yb).unwrap();
+    let out = g.read_f32(&yb).unwrap();
+    let times = g.kernel_times();
+    let per = pii_bake::backend::gpu::kernel_times_per(&times, &before, 1);
+    assert_eq!(per.len(), 1, "{per:?}");
+    assert_eq!((per[0].kernel.as_str(), per[0].launches), ("util::axpy", 1101.0));
+    assert!(per[0].seconds > 0.0 && per[0].seconds < 60.0, "{per:?}");
+    let expect = |k: f32| -> Vec<f32> { x.iter().map(|v| 1.0 + v + k * v).collect() };
+    assert_close("profiled axpy", &mid, &expect(550.0), Tolerance::F32_KERNEL);
+    assert_close("profiled axpy", &out, &expect(549.0), Tolerance::F32_KERNEL);
+    g.set_kernel_profile(false).unwrap();
+    util_kernels::axpy(&g, 1.0, &xb, &yb).unwrap();
+    g.read_f32(&yb).unwrap();
+    assert!(g.kernel_times().is_empty(), "off again: the profile is dropped");
+}

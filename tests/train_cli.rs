@@ -316,3 +316,35 @@ fn a_seeded_run_gives_the_same_parameters_on_one_and_three_threads() {
         assert!(x == y, "{name} differs between 1 and 3 threads");
     }
 }
+
+#[test]
+fn profile_kernels_reports_each_kernels_gpu_time_per_step() {
+    // On wgpu (lavapipe here, which has timestamp queries) every launch is timed: the report's
+    // kernels account for every launch the step counted (results under the profile: gpu_launcher).
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let ex = example();
+    let mut a = vec!["--backend", "wgpu", "--profile-kernels", "train", ex.to_str().unwrap(), "--out", run.to_str().unwrap()];
+    a.extend_from_slice(&TINY);
+    a.extend_from_slice(&["--stage", "geometry", "--iterations", "2"]);
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_pii-bake")).env("XDG_RUNTIME_DIR", std::env::temp_dir()).args(&a).output().unwrap();
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("GPU kernel time") && text(&o).contains("mlp::gemm"), "{}", text(&o));
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("train_report.json")).unwrap()).unwrap();
+    let kernels = r["gpu_kernels_per_step"].as_array().unwrap();
+    let launches: f64 = kernels.iter().map(|k| k["launches"].as_f64().unwrap()).sum();
+    assert_eq!(launches, r["gpu_per_step"]["dispatches"].as_f64().unwrap(), "{kernels:?}");
+    let secs: Vec<f64> = kernels.iter().map(|k| k["seconds"].as_f64().unwrap()).collect();
+    assert!(secs.iter().all(|s| s.is_finite() && *s >= 0.0) && secs.iter().sum::<f64>() > 0.0, "{secs:?}");
+    assert!(secs.windows(2).all(|w| w[0] >= w[1]), "costliest first: {secs:?}");
+    // The cpu backend has no kernels: a warning, and no profile in the report.
+    let run = dir.path().join("cpu");
+    let mut a = vec!["--profile-kernels", "train", ex.to_str().unwrap(), "--out", run.to_str().unwrap()];
+    a.extend_from_slice(&TINY);
+    a.extend_from_slice(&["--stage", "geometry", "--iterations", "1"]);
+    let o = pii(&a);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("the cpu backend has none to time"), "{}", text(&o));
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("train_report.json")).unwrap()).unwrap();
+    assert!(r["gpu_kernels_per_step"].is_null());
+}

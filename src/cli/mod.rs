@@ -37,6 +37,11 @@ pub struct GlobalArgs {
     /// Only errors on stderr.
     #[arg(short, long, global = true)]
     pub quiet: bool,
+    /// Time every wgpu kernel with GPU timestamps; training reports then list each kernel's launches
+    /// and GPU time per step (`gpu_kernels_per_step`). A diagnosis: each launch gets its own pass
+    /// and each submission waits, so the run is slower than unprofiled.
+    #[arg(long, global = true)]
+    pub profile_kernels: bool,
 }
 
 #[derive(Debug, Subcommand)]
@@ -117,7 +122,7 @@ pub fn main() -> ExitCode {
         std::env::set_var("XDG_RUNTIME_DIR", std::env::temp_dir());
     }
     let g = &cli.global;
-    let ctx = Context { backend_choice: g.backend, adapter: g.adapter.clone(), json: g.json, quiet: g.quiet };
+    let ctx = Context { backend_choice: g.backend, adapter: g.adapter.clone(), json: g.json, quiet: g.quiet, profile_kernels: g.profile_kernels };
     match run(&cli.command, &ctx) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {

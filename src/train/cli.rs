@@ -15,6 +15,7 @@ use serde::{Deserialize, Serialize};
 use super::hull::{carve, signed_distance, MaskView};
 use super::preview::{asset_rotation, smooth, ViewAdapter};
 use super::stage1::{scene_key, InitMode, Model, Preset, Stage1Config, StepStats, TrainData, Trainer, CHECKPOINT};
+use crate::backend::gpu::KernelTime;
 use crate::backend::{Backend, BackendError};
 use crate::context::Context;
 use crate::export::{AssetArgs, ExportConfig, ExportReport};
@@ -282,6 +283,7 @@ pub fn on_mask(v: &View, p: usize) -> bool {
 /// GPU take over, the serial glue a GPU step waits on), each as a mean per step.
 pub(crate) struct StepCosts {
     gpu: Option<crate::backend::gpu::GpuCounters>,
+    kernels: Vec<KernelTime>,
     encoding: f64,
     thread_cpu: Option<f64>,
 }
@@ -289,23 +291,43 @@ pub(crate) struct StepCosts {
 /// [`StepCosts::per_step`].
 pub(crate) struct PerStep {
     pub gpu: Option<crate::backend::gpu::GpuCounters>,
+    /// Each kernel's launches and GPU time per step, the costliest first, under `--profile-kernels`.
+    pub kernels: Option<Vec<KernelTime>>,
     pub encoding_seconds: f64,
     pub thread_cpu_seconds: Option<f64>,
 }
 
 impl StepCosts {
     pub(crate) fn start(backend: &Backend) -> Self {
-        Self { gpu: backend.gpu().map(|g| g.counters()), encoding: crate::nn::field::host_encoding_seconds(), thread_cpu: crate::util::thread_cpu_seconds() }
+        Self {
+            gpu: backend.gpu().map(|g| g.counters()),
+            kernels: backend.gpu().map(|g| g.kernel_times()).unwrap_or_default(),
+            encoding: crate::nn::field::host_encoding_seconds(),
+            thread_cpu: crate::util::thread_cpu_seconds(),
+        }
     }
 
     /// The means over the `steps` since [`StepCosts::start`] (on the thread that started it).
     pub(crate) fn per_step(&self, backend: &Backend, steps: u64) -> PerStep {
         let n = steps.max(1) as f64;
+        let kernels = backend.gpu().map(|g| crate::backend::gpu::kernel_times_per(&g.kernel_times(), &self.kernels, steps));
         PerStep {
             gpu: self.gpu.zip(backend.gpu()).map(|(c0, g)| g.counters().per(&c0, steps)),
+            kernels: kernels.filter(|k| !k.is_empty()),
             encoding_seconds: (crate::nn::field::host_encoding_seconds() - self.encoding) / n,
             thread_cpu_seconds: self.thread_cpu.zip(crate::util::thread_cpu_seconds()).map(|(a, b)| (b - a) / n),
         }
+    }
+
+    /// One line on the profiled kernels of a step (`--profile-kernels`): their GPU time in all
+    /// and the costliest few, or None where nothing was profiled.
+    pub(crate) fn kernel_line(stage: &str, per_step: &PerStep) -> Option<String> {
+        let k = per_step.kernels.as_ref()?;
+        let total: f64 = k.iter().map(|k| k.seconds).sum();
+        let launches: f64 = k.iter().map(|k| k.launches).sum();
+        let top: Vec<String> =
+            k.iter().take(6).map(|k| format!("{} {:.3} ms ({:.0}%, {:.1} launches)", k.kernel, k.seconds * 1e3, 100.0 * k.seconds / total.max(1e-30), k.launches)).collect();
+        Some(format!("{stage}: GPU kernel time {:.3} ms over {launches:.1} launches per step (profiled); costliest: {}", total * 1e3, top.join(", ")))
     }
 }
 
@@ -551,6 +573,7 @@ pub fn train_stage1(
         "last": last,
         "it_per_s": its,
         "gpu_per_step": per_step.gpu,
+        "gpu_kernels_per_step": per_step.kernels,
         "host_encoding_seconds_per_step": per_step.encoding_seconds,
         "training_thread_cpu_seconds_per_step": per_step.thread_cpu_seconds,
         "hull_init": hull_report,
@@ -560,6 +583,9 @@ pub fn train_stage1(
         "seconds": { "init": seconds_init, "train": seconds_train, "total": t_total.elapsed().as_secs_f64() },
     });
     crate::util::atomic_write(&run_dir.join("train_report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    if let Some(line) = StepCosts::kernel_line("stage 1", &per_step) {
+        ctx.say(line);
+    }
     ctx.say(format!(
         "stage 1: {} steps ({} skipped) at {:.2} it/s; {}: PSNR {:.2} dB, mask IoU {:.3}{}",
         trainer.step,

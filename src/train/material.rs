@@ -397,6 +397,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "last": last,
         "it_per_s": its,
         "gpu_per_step": per_step.gpu,
+        "gpu_kernels_per_step": per_step.kernels,
         "host_encoding_seconds_per_step": per_step.encoding_seconds,
         "training_thread_cpu_seconds_per_step": per_step.thread_cpu_seconds,
         "material": { "mean_albedo": mean_alb, "mean_roughness": mean_rough },
@@ -414,6 +415,9 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "seconds": { "cache": seconds_cache, "train": seconds_train, "total": t_total.elapsed().as_secs_f64() },
     });
     crate::util::atomic_write(&run_dir.join("material_report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    if let Some(line) = super::cli::StepCosts::kernel_line("stage 2", &per_step) {
+        ctx.say(line);
+    }
     ctx.say(format!(
         "stage 2: {} steps ({} skipped) at {:.2} it/s; {}: PSNR {:.2} dB ({} light and learned material); {} of {} lobes without energy{}",
         trainer.step,

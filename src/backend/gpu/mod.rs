@@ -1,6 +1,7 @@
 //! The wgpu backend: headless device creation, adapter choice, typed storage buffers, a cached
-//! kernel (compute pipeline) launcher with explicit bind-group layouts, batched dispatch, and
-//! GPU timing through timestamp queries where the adapter supports them.
+//! kernel (compute pipeline) launcher with explicit bind-group layouts, batched dispatch, and a
+//! per-kernel GPU time profile through timestamp queries where the adapter supports them
+//! ([`GpuContext::set_kernel_profile`]).
 //!
 //! Kernel binding convention (all WGSL kernels follow it, see ARCHITECTURE.md):
 //! `@group(0) @binding(0)` is a `var<uniform>` params struct when the kernel has one; storage
@@ -154,6 +155,49 @@ pub struct GpuContext {
     /// The uniform arena (see [`Pending`]) and its offset alignment.
     arena: wgpu::Buffer,
     uniform_align: usize,
+    /// Whether dispatches are recorded for the kernel profile (read without the `pending` lock
+    /// by every launch).
+    profiling: std::sync::atomic::AtomicBool,
+}
+
+/// Dispatches per query set of the kernel profile (two timestamps each; a set's resolved
+/// timestamps take 16 KiB, a multiple of the 256-byte resolve alignment).
+const PROFILE_SET: usize = 1024;
+
+/// The kernel profile's state (see [`GpuContext::set_kernel_profile`]): the open encoder's
+/// profiled dispatches and the totals of every submission resolved so far.
+#[derive(Default)]
+struct Profile {
+    /// Query sets of `PROFILE_SET` dispatches, reused by each submission.
+    sets: Vec<wgpu::QuerySet>,
+    /// The open encoder's profiled dispatches' kernel labels, in recording order (dispatch `i`
+    /// writes timestamps `2i`, `2i + 1` of the whole, set `i / PROFILE_SET`).
+    labels: Vec<String>,
+    totals: HashMap<String, KernelTime>,
+}
+
+/// One kernel's launches and GPU time (seconds between its pass's two timestamps), summed.
+#[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
+pub struct KernelTime {
+    pub kernel: String,
+    pub launches: f64,
+    pub seconds: f64,
+}
+
+/// `later − earlier` per kernel, divided by `steps`, the costliest first (kernels that did not
+/// run in between are left out).
+pub fn kernel_times_per(later: &[KernelTime], earlier: &[KernelTime], steps: u64) -> Vec<KernelTime> {
+    let n = steps.max(1) as f64;
+    let mut out: Vec<KernelTime> = later
+        .iter()
+        .map(|k| {
+            let e = earlier.iter().find(|e| e.kernel == k.kernel).cloned().unwrap_or_default();
+            KernelTime { kernel: k.kernel.clone(), launches: (k.launches - e.launches) / n, seconds: (k.seconds - e.seconds) / n }
+        })
+        .filter(|k| k.launches > 0.0)
+        .collect();
+    out.sort_by(|a, b| b.seconds.total_cmp(&a.seconds).then_with(|| a.kernel.cmp(&b.kernel)));
+    out
 }
 
 /// Batches queued before they are submitted together: a queue submission costs tens of µs of
@@ -169,38 +213,48 @@ enum Command {
         /// The params block, padded to 16 bytes: written into the uniform arena when queued.
         uniform: Option<Vec<u8>>,
         groups: [u32; 3],
-        /// A timed dispatch's queries and its own pass's label (the kernel's).
-        timing: Option<(wgpu::QuerySet, String)>,
+        /// The kernel's label while the kernel profile is on: the dispatch gets its own pass,
+        /// timed.
+        profiled: Option<String>,
     },
     Copy { src: wgpu::Buffer, dst: wgpu::Buffer, size: u64 },
-    Resolve { queries: wgpu::QuerySet, dst: wgpu::Buffer },
 }
 
 impl Command {
     /// Record into the open encoder; `offset` is the dispatch's params block in the uniform
-    /// arena. Consecutive untimed dispatches share one compute pass (wgpu orders them inside it:
-    /// a dispatch that reads what an earlier one wrote gets its barrier); a copy, a timed
-    /// dispatch or a submission ends it.
+    /// arena. Consecutive dispatches share one compute pass (wgpu orders them inside it: a
+    /// dispatch that reads what an earlier one wrote gets its barrier); a copy, a profiled
+    /// dispatch (its own pass, timestamped at both ends) or a submission ends it.
     fn record(&self, ctx: &GpuContext, p: &mut Pending, offset: u32) {
-        let Pending { encoder, pass, .. } = p;
+        let Pending { encoder, pass, profile, .. } = p;
         let enc = encoder.get_or_insert_with(|| ctx.device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("queued") }));
         match self {
-            Command::Dispatch { pipeline, bind_group, groups, timing, uniform } => {
+            Command::Dispatch { pipeline, bind_group, groups, profiled, uniform } => {
                 let mut own;
-                let pass = match timing {
-                    None => pass.get_or_insert_with(|| {
-                        enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("queued"), timestamp_writes: None }).forget_lifetime()
-                    }),
-                    Some((qs, label)) => {
+                let pass = match (profiled, profile.as_mut()) {
+                    (Some(label), Some(prof)) => {
                         *pass = None;
+                        let i = prof.labels.len();
+                        if i / PROFILE_SET == prof.sets.len() {
+                            prof.sets.push(ctx.device.create_query_set(&wgpu::QuerySetDescriptor {
+                                label: Some("kernel profile"),
+                                ty: wgpu::QueryType::Timestamp,
+                                count: 2 * PROFILE_SET as u32,
+                            }));
+                        }
+                        let j = (i % PROFILE_SET) as u32;
                         let timestamp_writes = Some(wgpu::ComputePassTimestampWrites {
-                            query_set: qs,
-                            beginning_of_pass_write_index: Some(0),
-                            end_of_pass_write_index: Some(1),
+                            query_set: &prof.sets[i / PROFILE_SET],
+                            beginning_of_pass_write_index: Some(2 * j),
+                            end_of_pass_write_index: Some(2 * j + 1),
                         });
                         own = enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some(label), timestamp_writes }).forget_lifetime();
+                        prof.labels.push(label.clone());
                         &mut own
                     }
+                    _ => pass.get_or_insert_with(|| {
+                        enc.begin_compute_pass(&wgpu::ComputePassDescriptor { label: Some("queued"), timestamp_writes: None }).forget_lifetime()
+                    }),
                 };
                 pass.set_pipeline(pipeline);
                 let offsets = [offset];
@@ -210,10 +264,6 @@ impl Command {
             Command::Copy { src, dst, size } => {
                 *pass = None;
                 enc.copy_buffer_to_buffer(src, 0, dst, 0, *size)
-            }
-            Command::Resolve { queries, dst } => {
-                *pass = None;
-                enc.resolve_query_set(queries, 0..2, dst, 0)
             }
         }
     }
@@ -235,6 +285,8 @@ struct Pending {
     encoder: Option<wgpu::CommandEncoder>,
     batches: usize,
     uniforms: Vec<u8>,
+    /// The kernel profile, while it is on.
+    profile: Option<Profile>,
 }
 
 /// Bytes of the uniform arena: 16384 params blocks at the usual 256-byte offset alignment.
@@ -367,6 +419,7 @@ impl GpuContext {
             pending: Mutex::new(Pending::default()),
             arena,
             uniform_align,
+            profiling: std::sync::atomic::AtomicBool::new(false),
         })
     }
 
@@ -376,6 +429,37 @@ impl GpuContext {
 
     pub fn supports_timestamps(&self) -> bool {
         self.features.contains(wgpu::Features::TIMESTAMP_QUERY)
+    }
+
+    /// Turn the kernel profile on or off. While it is on, every dispatch gets its own compute
+    /// pass timestamped at both ends, and each queue submission waits for its timestamps and adds
+    /// them to its kernel's total ([`GpuContext::kernel_times`]). That is a diagnosis, not the
+    /// production path: passes no longer share a dispatch's neighbours and every submission
+    /// waits, so the step is slower than unprofiled (the profile's own waits are not counted in
+    /// [`GpuContext::counters`], though the time they take is gone from the next counted wait).
+    /// An error where the adapter has no timestamp queries.
+    pub fn set_kernel_profile(&self, on: bool) -> Result<(), BackendError> {
+        if on && !self.supports_timestamps() {
+            return Err(BackendError::Device(format!("{} has no timestamp queries: kernels cannot be profiled on it", self.info.name)));
+        }
+        let mut p = self.pending.lock().expect("pending batches poisoned");
+        self.submit_locked(&mut p)?;
+        if on {
+            p.profile.get_or_insert_with(Profile::default);
+        } else {
+            p.profile = None;
+        }
+        self.profiling.store(on, Ordering::Relaxed);
+        Ok(())
+    }
+
+    /// Every profiled kernel's launches and GPU time since the profile was turned on, by label
+    /// (`family::entry`); empty while it is off. [`kernel_times_per`] makes a step's share.
+    pub fn kernel_times(&self) -> Vec<KernelTime> {
+        let p = self.pending.lock().expect("pending batches poisoned");
+        let mut v: Vec<KernelTime> = p.profile.as_ref().map(|p| p.totals.values().cloned().collect()).unwrap_or_default();
+        v.sort_by(|a, b| a.kernel.cmp(&b.kernel));
+        v
     }
 
     /// Totals since the context was made (see [`GpuCounters::per`]).
@@ -501,7 +585,7 @@ impl GpuContext {
     fn submit_locked(&self, pending: &mut Pending) -> Result<(), BackendError> {
         pending.batches = 0;
         pending.pass = None;
-        let Some(enc) = pending.encoder.take() else {
+        let Some(mut enc) = pending.encoder.take() else {
             return Ok(());
         };
         let scope = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
@@ -509,12 +593,55 @@ impl GpuContext {
             self.queue.write_buffer(&self.arena, 0, &pending.uniforms);
             pending.uniforms.clear();
         }
+        let timestamps = pending.profile.as_ref().filter(|p| !p.labels.is_empty()).map(|p| self.resolve_profile(&mut enc, p));
         self.count(&self.counters.submits, 1);
         self.queue.submit([enc.finish()]);
-        match pollster::block_on(scope.pop()) {
-            Some(err) => Err(BackendError::Validation { label: "submission".into(), message: err.to_string() }),
-            None => Ok(()),
+        if let Some(err) = pollster::block_on(scope.pop()) {
+            return Err(BackendError::Validation { label: "submission".into(), message: err.to_string() });
         }
+        match (timestamps, pending.profile.as_mut()) {
+            (Some(staging), Some(prof)) => self.add_profile(&staging, prof),
+            _ => Ok(()),
+        }
+    }
+
+    /// Record the resolution of the open encoder's profile timestamps into a readable buffer.
+    fn resolve_profile(&self, enc: &mut wgpu::CommandEncoder, prof: &Profile) -> wgpu::Buffer {
+        let set_bytes = (2 * PROFILE_SET * 8) as u64;
+        let size = prof.labels.len().div_ceil(PROFILE_SET) as u64 * set_bytes;
+        let make = |label, usage| self.device.create_buffer(&wgpu::BufferDescriptor { label: Some(label), size, usage, mapped_at_creation: false });
+        let resolved = make("kernel profile", wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC);
+        let staging = make("kernel profile readback", wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST);
+        for (k, set) in prof.sets.iter().enumerate().take(prof.labels.len().div_ceil(PROFILE_SET)) {
+            let used = (prof.labels.len() - k * PROFILE_SET).min(PROFILE_SET) as u32;
+            enc.resolve_query_set(set, 0..2 * used, &resolved, k as u64 * set_bytes);
+        }
+        enc.copy_buffer_to_buffer(&resolved, 0, &staging, 0, size);
+        staging
+    }
+
+    /// Wait for a submission's profile timestamps and add each dispatch's time to its kernel.
+    fn add_profile(&self, staging: &wgpu::Buffer, prof: &mut Profile) -> Result<(), BackendError> {
+        let (tx, rx) = std::sync::mpsc::channel();
+        staging.slice(..).map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
+        });
+        self.device.poll(wgpu::PollType::wait_indefinitely()).map_err(|e| BackendError::Device(format!("poll failed: {e}")))?;
+        rx.recv().map_err(|e| BackendError::Map(e.to_string()))?.map_err(|e| BackendError::Map(e.to_string()))?;
+        let period = self.queue.get_timestamp_period() as f64 * 1e-9;
+        {
+            let view = staging.slice(..).get_mapped_range().map_err(|e| BackendError::Map(e.to_string()))?;
+            let ticks: &[u64] = bytemuck::cast_slice(&view);
+            for (i, label) in prof.labels.drain(..).enumerate() {
+                let (set, j) = (i / PROFILE_SET, i % PROFILE_SET);
+                let (t0, t1) = (ticks[set * 2 * PROFILE_SET + 2 * j], ticks[set * 2 * PROFILE_SET + 2 * j + 1]);
+                let k = prof.totals.entry(label).or_insert_with_key(|l| KernelTime { kernel: l.clone(), ..Default::default() });
+                k.launches += 1.0;
+                k.seconds += t1.saturating_sub(t0) as f64 * period;
+            }
+        }
+        staging.unmap();
+        Ok(())
     }
 
     /// Read a buffer back to the host (blocks until the GPU is done with it).
@@ -683,41 +810,6 @@ impl GpuContext {
         b.dispatch(kernel, uniform, storage, groups)?;
         b.submit()
     }
-
-    /// Time one dispatch on the GPU with timestamp queries: seconds, or `None` when the adapter
-    /// has no timestamp support (the dispatch still runs).
-    pub fn dispatch_timed(
-        &self,
-        kernel: &Kernel,
-        uniform: Option<&[u8]>,
-        storage: &[Bind<'_>],
-        groups: [u32; 3],
-    ) -> Result<Option<f64>, BackendError> {
-        if !self.supports_timestamps() {
-            self.dispatch(kernel, uniform, storage, groups)?;
-            return Ok(None);
-        }
-        let qs = self.device.create_query_set(&wgpu::QuerySetDescriptor {
-            label: Some("timing"),
-            ty: wgpu::QueryType::Timestamp,
-            count: 2,
-        });
-        let resolve = self.device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("timing-resolve"),
-            size: 16,
-            usage: wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::STORAGE,
-            mapped_at_creation: false,
-        });
-        let mut b = self.batch(&kernel.label);
-        b.dispatch_inner(kernel, uniform, storage, groups, Some(&qs))?;
-        b.commands.push(Command::Resolve { queries: qs, dst: resolve.clone() });
-        b.submit()?;
-        let ticks: Vec<u32> = self.read(&GpuBuffer { buffer: resolve, len: 4 })?;
-        let t0 = ticks[0] as u64 | ((ticks[1] as u64) << 32);
-        let t1 = ticks[2] as u64 | ((ticks[3] as u64) << 32);
-        let period_ns = self.queue.get_timestamp_period() as f64;
-        Ok(Some(t1.saturating_sub(t0) as f64 * period_ns * 1e-9))
-    }
 }
 
 /// A batch of dispatches (and copies) submitted together, in order.
@@ -735,17 +827,6 @@ impl Batch<'_> {
         uniform: Option<&[u8]>,
         storage: &[Bind<'_>],
         groups: [u32; 3],
-    ) -> Result<(), BackendError> {
-        self.dispatch_inner(kernel, uniform, storage, groups, None)
-    }
-
-    fn dispatch_inner(
-        &mut self,
-        kernel: &Kernel,
-        uniform: Option<&[u8]>,
-        storage: &[Bind<'_>],
-        groups: [u32; 3],
-        timing: Option<&wgpu::QuerySet>,
     ) -> Result<(), BackendError> {
         let ctx = self.ctx;
         if uniform.is_some() != kernel.spec.uniform || storage.len() != kernel.spec.storage.len() {
@@ -799,7 +880,7 @@ impl Batch<'_> {
             bind_group: bg,
             uniform: ubytes,
             groups,
-            timing: timing.map(|qs| (qs.clone(), kernel.label.clone())),
+            profiled: ctx.profiling.load(Ordering::Relaxed).then(|| kernel.label.clone()),
         });
         ctx.count(&ctx.counters.dispatches, 1);
         Ok(())
