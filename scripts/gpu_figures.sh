@@ -7,7 +7,8 @@
 #   PII=<pii-bake binary> OUT=<folder> scripts/gpu_figures.sh [STAGE1_ITERS] [STAGE2_ITERS]
 #
 # defaults: PII=target/release/pii-bake, OUT=out/gpu, 300 stage-1 and 300 stage-2 iterations on
-# the bundled example. Writes OUT/summary.txt (one line per run: it/s, waits, launches, held-out
+# the bundled example; NN_ARGS: extra `bench nn` arguments (a quick local check of this script on
+# lavapipe: NN_ARGS="--networks fast --batches 64 --iters 1 --gemm-rows 64" and 3 3). Writes OUT/summary.txt (one line per run: it/s, waits, launches, held-out
 # PSNR), OUT/kernels.txt (the profiled run's kernels per step, costliest first), OUT/log.txt and
 # OUT/reports.tar.gz (every report). A binary built elsewhere can be carried stripped
 # (`strip -o .gpu/pii-bake target/release/pii-bake`; the debug-info build is over 100 MB).
@@ -34,7 +35,8 @@ step() {
 }
 
 step "$PII" devices
-step "$PII" --backend wgpu bench nn --out "$runs/nn_wgpu.json"
+# shellcheck disable=SC2086
+step "$PII" --backend wgpu bench nn ${NN_ARGS:-} --out "$runs/nn_wgpu.json"
 # Stage 1, same seed and data: wgpu (device optimiser, the default), wgpu (host optimiser), cpu.
 step "$PII" --backend wgpu -q train "$scene" --out "$runs/wgpu" --stage geometry --iterations "$S1"
 step "$PII" --backend wgpu -q train "$scene" --out "$runs/wgpu_host_adam" --stage geometry --iterations "$S1" --geometry-set device_optimiser=false
