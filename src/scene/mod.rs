@@ -308,7 +308,7 @@ impl std::fmt::Display for Downscale {
 pub const AUTO_MAX_SIDE: usize = 1536;
 /// The most pixels `Downscale::Auto` reads over all views: about 3.7 GB in memory while training
 /// (55 bytes a pixel, measured), and 32 times the pixels a default stage-1 run draws rays through
-/// (1024 rays × 2000 iterations), so a larger pool adds memory, not information.
+/// (4096 rays × 500 iterations), so a larger pool adds memory, not information.
 pub const AUTO_MAX_PIXELS: usize = 1 << 26;
 
 /// The factor `Downscale::Auto` reads images of these sizes at: the smallest that brings every
