@@ -597,6 +597,9 @@ impl GpuContext {
         self.count(&self.counters.submits, 1);
         self.queue.submit([enc.finish()]);
         if let Some(err) = pollster::block_on(scope.pop()) {
+            if let Some(p) = pending.profile.as_mut() {
+                p.labels.clear();
+            }
             return Err(BackendError::Validation { label: "submission".into(), message: err.to_string() });
         }
         match (timestamps, pending.profile.as_mut()) {
