@@ -272,9 +272,10 @@ impl Stage1Config {
             // example 0.166% / 0.9838 / 28.47, 0.171% / 0.9804 -> 0.165% / 0.9842 / 28.19, 0.170% /
             // 0.9809; glossy 0.252% / 0.9734 / 22.34, 0.253% / 0.9710 -> 0.252% / 0.9737 / 22.35,
             // 0.263% / 0.9714; bowl 1.368% / 0.9208 / 27.68, 1.379% / 0.9187 -> 1.369% / 0.9222 /
-            // 27.43, 1.369% / 0.9216. Stage-1 training of the example 197.5 -> 138.0 s side by side
-            // (the per-step work that does not grow with the rays: eikonal points, Adam, the
-            // training thread's glue), and a GPU step, bound by launches and round trips rather
+            // 27.43, 1.369% / 0.9216; example seed 1 0.159% / 0.9844 / 28.78, 0.165% / 0.9807 ->
+            // 0.158% / 0.9848 / 28.69, 0.164% / 0.9812. Stage-1 training of the example 197.5 ->
+            // 138.0 s side by side (the per-step work that does not grow with the rays: eikonal
+            // points, Adam, the training thread's glue), and a GPU step, bound by launches and round trips rather
             // than arithmetic, is paid 500 times instead of 2000. At 4096 x 500 with the old rates
             // the example reached 0.177% / 27.93 dB, at 8192 x 250 0.191% / 27.21 dB.
             rays: 4096,
