@@ -104,13 +104,16 @@ impl Found {
 /// `values` (`channels` per pixel, `width`×`height`) box-filtered by `n` as `scene::downscale`
 /// reads photos, each value weighted by `alpha` where there is one (a silhouette pixel keeps the
 /// colour of what covers it and takes the covered share as its alpha, as a render at that size
-/// has it): `(values, alpha)` at 1/n.
-fn downscale_weighted(values: &[f32], channels: usize, (width, height): (usize, usize), alpha: Option<&[f32]>, n: usize) -> (Vec<f32>, Option<Vec<f32>>) {
+/// has it): `(values, alpha)` at 1/n, returned as they are for n = 1.
+fn downscale_weighted(values: Vec<f32>, channels: usize, (width, height): (usize, usize), alpha: Option<Vec<f32>>, n: usize) -> (Vec<f32>, Option<Vec<f32>>) {
+    if n == 1 {
+        return (values, alpha);
+    }
     let Some(alpha) = alpha else {
-        return (crate::scene::downscale(&ImageF32 { width, height, channels, data: values.to_vec() }, n).data, None);
+        return (crate::scene::downscale(&ImageF32 { width, height, channels, data: values }, n).data, None);
     };
     let c = channels + 1;
-    let data = values.chunks_exact(channels).zip(alpha).flat_map(|(v, &a)| v.iter().map(move |x| x * a).chain([a])).collect();
+    let data = values.chunks_exact(channels).zip(&alpha).flat_map(|(v, &a)| v.iter().map(move |x| x * a).chain([a])).collect();
     let small = crate::scene::downscale(&ImageF32 { width, height, channels: c, data }, n);
     let mut out = Vec::with_capacity(small.data.len() / c * channels);
     let mut out_alpha = Vec::with_capacity(small.data.len() / c);
@@ -132,7 +135,7 @@ fn fit_image(gt: ImageF32, pred: (usize, usize), found: &mut Found, pred_path: &
     if gt.channels != 4 {
         return Ok(crate::scene::downscale(&gt, n));
     }
-    let (rgb, alpha) = downscale_weighted(&gt.rgb(), 3, (gt.width, gt.height), gt.alpha().as_deref(), n);
+    let (rgb, alpha) = downscale_weighted(gt.rgb(), 3, (gt.width, gt.height), gt.alpha(), n);
     let alpha = alpha.unwrap_or_default();
     let data = rgb.chunks_exact(3).zip(&alpha).flat_map(|(c, &a)| [c[0], c[1], c[2], a]).collect();
     Ok(ImageF32 { width: pred.0, height: pred.1, channels: 4, data })
@@ -293,7 +296,7 @@ pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
         let (pw, ph, pv) = read_mask(&pp)?;
         let alpha = read_image_linear(&gp)?.alpha();
         let n = found.factor((pw, ph), (gw, gh), &pp, &gp)?;
-        let (gv, alpha) = if n == 1 { (gv, alpha) } else { downscale_weighted(&gv, 1, (gw, gh), alpha.as_deref(), n) };
+        let (gv, alpha) = downscale_weighted(gv, 1, (gw, gh), alpha, n);
         rough.push(weighted_mse(&pv, &gv, 1, alpha.as_deref()));
     }
     if !rough.is_empty() {
@@ -312,8 +315,7 @@ pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
         };
         // Filtered as stored (n·0.5 + 0.5 is linear in n; the angle renormalises the mean).
         let n = found.factor((p.width, p.height), (g.width, g.height), &pp, &gp)?;
-        let (gn, ga) = (stored_values(&g, &gp), g.alpha());
-        let (gn, ga) = if n == 1 { (gn, ga) } else { downscale_weighted(&gn, 3, (g.width, g.height), ga.as_deref(), n) };
+        let (gn, ga) = downscale_weighted(stored_values(&g, &gp), 3, (g.width, g.height), g.alpha(), n);
         if let Some(e) = normal_error_degrees((&stored_values(&p, &pp), p.alpha()), (&gn, ga)) {
             normal.push(e);
         }
@@ -465,9 +467,9 @@ mod tests {
             assert!(e.problem.contains("render at its size or at 1/N of it"), "{bad:?}: {}", e.problem);
         }
         // Without alpha, a plain box filter; an uncovered block has alpha 0 and colour 0.
-        let (v, a) = downscale_weighted(&[1.0, 3.0, 5.0, 7.0], 1, (2, 2), None, 2);
+        let (v, a) = downscale_weighted(vec![1.0, 3.0, 5.0, 7.0], 1, (2, 2), None, 2);
         assert_eq!((v, a), (vec![4.0], None));
-        let (v, a) = downscale_weighted(&[1.0, 3.0, 5.0, 7.0], 1, (2, 2), Some(&[0.0; 4]), 2);
+        let (v, a) = downscale_weighted(vec![1.0, 3.0, 5.0, 7.0], 1, (2, 2), Some(vec![0.0; 4]), 2);
         assert_eq!((v, a), (vec![0.0], Some(vec![0.0])));
     }
 

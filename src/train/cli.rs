@@ -297,6 +297,19 @@ pub(crate) struct PerStep {
     pub thread_cpu_seconds: Option<f64>,
 }
 
+impl PerStep {
+    /// One line on the profiled kernels of a step (`--profile-kernels`): their GPU time in all
+    /// and the costliest few, or None where nothing was profiled.
+    pub(crate) fn kernel_line(&self, stage: &str) -> Option<String> {
+        let k = self.kernels.as_ref()?;
+        let total: f64 = k.iter().map(|k| k.seconds).sum();
+        let launches: f64 = k.iter().map(|k| k.launches).sum();
+        let top: Vec<String> =
+            k.iter().take(6).map(|k| format!("{} {:.3} ms ({:.0}%, {:.1} launches)", k.kernel, k.seconds * 1e3, 100.0 * k.seconds / total.max(1e-30), k.launches)).collect();
+        Some(format!("{stage}: GPU kernel time {:.3} ms over {launches:.1} launches per step (profiled); costliest: {}", total * 1e3, top.join(", ")))
+    }
+}
+
 impl StepCosts {
     pub(crate) fn start(backend: &Backend) -> Self {
         Self {
@@ -317,17 +330,6 @@ impl StepCosts {
             encoding_seconds: (crate::nn::field::host_encoding_seconds() - self.encoding) / n,
             thread_cpu_seconds: self.thread_cpu.zip(crate::util::thread_cpu_seconds()).map(|(a, b)| (b - a) / n),
         }
-    }
-
-    /// One line on the profiled kernels of a step (`--profile-kernels`): their GPU time in all
-    /// and the costliest few, or None where nothing was profiled.
-    pub(crate) fn kernel_line(stage: &str, per_step: &PerStep) -> Option<String> {
-        let k = per_step.kernels.as_ref()?;
-        let total: f64 = k.iter().map(|k| k.seconds).sum();
-        let launches: f64 = k.iter().map(|k| k.launches).sum();
-        let top: Vec<String> =
-            k.iter().take(6).map(|k| format!("{} {:.3} ms ({:.0}%, {:.1} launches)", k.kernel, k.seconds * 1e3, 100.0 * k.seconds / total.max(1e-30), k.launches)).collect();
-        Some(format!("{stage}: GPU kernel time {:.3} ms over {launches:.1} launches per step (profiled); costliest: {}", total * 1e3, top.join(", ")))
     }
 }
 
@@ -583,7 +585,7 @@ pub fn train_stage1(
         "seconds": { "init": seconds_init, "train": seconds_train, "total": t_total.elapsed().as_secs_f64() },
     });
     crate::util::atomic_write(&run_dir.join("train_report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
-    if let Some(line) = StepCosts::kernel_line("stage 1", &per_step) {
+    if let Some(line) = per_step.kernel_line("stage 1") {
         ctx.say(line);
     }
     ctx.say(format!(

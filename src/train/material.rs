@@ -415,7 +415,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "seconds": { "cache": seconds_cache, "train": seconds_train, "total": t_total.elapsed().as_secs_f64() },
     });
     crate::util::atomic_write(&run_dir.join("material_report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
-    if let Some(line) = super::cli::StepCosts::kernel_line("stage 2", &per_step) {
+    if let Some(line) = per_step.kernel_line("stage 2") {
         ctx.say(line);
     }
     ctx.say(format!(

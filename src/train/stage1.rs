@@ -275,12 +275,13 @@ impl Stage1Config {
             // 27.43, 1.369% / 0.9216; example seed 1 0.159% / 0.9844 / 28.78, 0.165% / 0.9807 ->
             // 0.158% / 0.9848 / 28.69, 0.164% / 0.9812. Stage-1 training of the example 197.5 ->
             // 138.0 s side by side (the per-step work that does not grow with the rays: eikonal
-            // points, Adam, the training thread's glue), and a GPU step, bound by launches and round trips rather
-            // than arithmetic, is paid 500 times instead of 2000. At 4096 x 500 with the old rates
-            // the example reached 0.177% / 27.93 dB, at 8192 x 250 0.191% / 27.21 dB.
+            // points, Adam, the training thread's glue), and a GPU step, bound by launches and
+            // round trips rather than arithmetic, is paid 500 times instead of 2000. At 4096 x 500
+            // with the old rates the example reached 0.177% / 27.93 dB, at 8192 x 250 0.191% /
+            // 27.21 dB.
             rays: 4096,
-            // `bench train --variant fast-refined-hull --set iterations=N` (cpu, 1024 rays), 1000 -> 2000,
-            // Chamfer / NC: example 0.190% / 0.983 -> 0.164% / 0.984, glossy 0.295% / 0.971 ->
+            // `bench train --variant fast-refined-hull --set iterations=N` (cpu, 1024 rays), 1000 ->
+            // 2000, Chamfer / NC: example 0.190% / 0.983 -> 0.164% / 0.984, glossy 0.295% / 0.971 ->
             // 0.254% / 0.973, bowl 1.433% / 0.924 -> 1.425% / 0.925; on the example's stage 2
             // (`bench material`, 32 lobes, ours, 4 views) albedo 25.54 -> 25.82 dB, normal error
             // 3.96 -> 3.61 degrees, novel view 28.45 -> 28.64 dB, relit 26.28 / 27.67 -> 26.10 / 27.62
