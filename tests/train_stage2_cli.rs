@@ -250,6 +250,7 @@ fn bench_material_writes_figures_per_variant() {
     ]);
     assert!(o.status.success(), "{}", text(&o));
     let csv = std::fs::read_to_string(out.join("bench-material.csv")).unwrap();
+    assert!(csv.lines().next().unwrap().contains(",relit_psnr,relit_aligned_psnr,roughness_mse,"), "{csv}");
     let rows: Vec<&str> = csv.lines().skip(1).collect();
     assert_eq!(rows.len(), 8, "{csv}");
     let names: Vec<&str> = rows.iter().map(|r| r.split(',').next().unwrap()).collect();

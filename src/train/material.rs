@@ -156,6 +156,16 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &s
         // `bench material`, 32 lobes, ours: example held-out / albedo / relit / roughness MSE
         // 25.63 / 20.64 / 23.84 / 0.078 -> 25.82 / 21.08 / 24.30 / 0.052; glossy 22.05 / 21.93 /
         // 21.43 / 0.017 -> 22.35 / 22.53 / 21.25 / 0.011.
+        // Tried and not kept: a spatial albedo prior (L1 between the albedos of each batch point
+        // and its nearest batch neighbour within 0.1 of the bounding radius, weighted by how alike
+        // their photos' chromaticity and luminance are, divided by the batch's mean albedo so it
+        // cannot pay the light to take the albedo's scale). `bench material` (32 lobes, ours, 4
+        // relit views), weight 0 -> 0.1 -> 0.3, albedo / relit as rendered (mean of both maps):
+        // example 27.10 / 27.62 -> 27.98 / 25.96 -> 29.13 / 24.83 dB (the albedo turns whiter,
+        // which the light takes back: relit after one scale per channel 29.0 -> 29.3 -> 29.3);
+        // bowl 17.22 / 20.13 -> 15.14 / 18.38; textureless bowl 21.67 / 23.38 -> 20.05 / 22.48 ->
+        // 18.00 / 20.49. Plain differences (no mean) let the albedo fall to a third and the light
+        // grow (example relit 13.8 dB at 0.3).
         cfg = cfg.with_material_grid(material_grid_finest(sizes), sizes.grid_log2_table);
         cfg.smooth_weight = GRID_SMOOTH_WEIGHT;
     }
