@@ -141,7 +141,7 @@ fn fit_image(gt: ImageF32, pred: (usize, usize), found: &mut Found, pred_path: &
     Ok(ImageF32 { width: pred.0, height: pred.1, channels: 4, data })
 }
 
-fn mean(v: &[f64]) -> Option<f64> {
+pub(crate) fn mean(v: &[f64]) -> Option<f64> {
     (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64)
 }
 

@@ -163,11 +163,7 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
                 row.env_relative_l2 = f(&m["env"]["relative_l2"]);
                 let mean_relit = |key: &str| -> f64 {
                     let v: Vec<f64> = m["relit"].as_object().map(|o| o.values().map(|v| f(&v[key])).filter(|v| v.is_finite()).collect()).unwrap_or_default();
-                    if v.is_empty() {
-                        f64::NAN
-                    } else {
-                        v.iter().sum::<f64>() / v.len() as f64
-                    }
+                    crate::eval::cli::mean(&v).unwrap_or(f64::NAN)
                 };
                 row.relit_psnr = mean_relit("psnr");
                 row.relit_aligned_psnr = mean_relit("psnr_aligned");

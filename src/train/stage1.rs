@@ -280,9 +280,9 @@ impl Stage1Config {
             // with the old rates the example reached 0.177% / 27.93 dB, at 8192 x 250 0.191% /
             // 27.21 dB.
             rays: 4096,
-            // `bench train --variant fast-refined-hull --set iterations=N` (cpu, 1024 rays), 1000 ->
-            // 2000, Chamfer / NC: example 0.190% / 0.983 -> 0.164% / 0.984, glossy 0.295% / 0.971 ->
-            // 0.254% / 0.973, bowl 1.433% / 0.924 -> 1.425% / 0.925; on the example's stage 2
+            // Earlier, at 1024 rays: `bench train --variant fast-refined-hull --set iterations=N`
+            // (cpu), 1000 -> 2000, Chamfer / NC: example 0.190% / 0.983 -> 0.164% / 0.984, glossy
+            // 0.295% / 0.971 -> 0.254% / 0.973, bowl 1.433% / 0.924 -> 1.425% / 0.925; on the example's stage 2
             // (`bench material`, 32 lobes, ours, 4 views) albedo 25.54 -> 25.82 dB, normal error
             // 3.96 -> 3.61 degrees, novel view 28.45 -> 28.64 dB, relit 26.28 / 27.67 -> 26.10 / 27.62
             // (after per-channel scale 27.37 / 28.80 -> 27.55 / 29.08). About 1.1 epochs -> 2.2 of
