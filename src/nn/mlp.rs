@@ -691,9 +691,21 @@ impl_real!(f64, matrixmultiply::dgemm);
 
 // ---- cpu twin --------------------------------------------------------------------------------
 
-/// Rows per rayon task: the whole network runs on one chunk at a time (its activations stay in
-/// cache), big enough that the GEMMs reach their packed-kernel speed.
+/// Rows per rayon task for large inputs: the whole network runs on one chunk at a time (its
+/// activations stay in cache), big enough that the GEMMs reach their packed-kernel speed.
 pub const CPU_CHUNK_ROWS: usize = 1024;
+
+/// Fewest rows a chunk is cut to (a multiple of the GEMM kernels' row tiles).
+const CPU_MIN_CHUNK_ROWS: usize = 64;
+
+/// Rows per chunk for an input of `n` rows: [`CPU_CHUNK_ROWS`] from `4 · CPU_CHUNK_ROWS` rows on;
+/// below that the input is cut into four chunks (rounded up to [`CPU_MIN_CHUNK_ROWS`]) so that a
+/// small batch (stage 2's 1024 points, its indirect slots) still spreads over the cores instead of
+/// running the whole network on one thread. A function of `n` alone, never of the thread count,
+/// so a seeded run adds its gradients in the same order on any machine.
+pub fn cpu_chunk_rows(n: usize) -> usize {
+    n.div_ceil(4).next_multiple_of(CPU_MIN_CHUNK_ROWS).clamp(CPU_MIN_CHUNK_ROWS, CPU_CHUNK_ROWS)
+}
 
 /// What the cpu forward keeps for the backward, per row chunk.
 #[derive(Clone, Debug, Default)]
@@ -709,6 +721,8 @@ pub struct CpuChunk<T> {
 pub struct CpuCache<T> {
     /// Dense `[W, b]` per layer (weight norm applied).
     dense: Vec<T>,
+    /// Rows of every chunk but the last ([`cpu_chunk_rows`] of the input's rows).
+    chunk_rows: usize,
     chunks: Vec<CpuChunk<T>>,
 }
 
@@ -805,8 +819,9 @@ pub fn cpu_forward<T: Real>(
     mlp.check_input(x.len())?;
     let dense = dense_params(mlp, params);
     let d = mlp.config.in_dim;
+    let chunk_rows = cpu_chunk_rows(x.len() / d.max(1));
     let parts: Vec<(Vec<T>, CpuChunk<T>)> = x
-        .par_chunks(CPU_CHUNK_ROWS * d)
+        .par_chunks(chunk_rows * d)
         .map(|xc| forward_chunk(mlp, &dense, xc, keep))
         .collect();
     let mut out = Vec::with_capacity(x.len() / d * mlp.config.out_dim);
@@ -815,7 +830,7 @@ pub fn cpu_forward<T: Real>(
         out.extend_from_slice(&o);
         chunks.push(c);
     }
-    Ok((out, CpuCache { dense, chunks }))
+    Ok((out, CpuCache { dense, chunk_rows, chunks }))
 }
 
 /// Backward of one chunk: accumulates dense parameter gradients into `dd`, writes `dx`.
@@ -959,15 +974,16 @@ pub fn cpu_backward<T: Real>(
     const PARTIAL_BYTES: usize = 64 << 20;
     let partials = (PARTIAL_BYTES / (mlp.num_dense * std::mem::size_of::<T>()).max(1)).clamp(1, MAX_PARTIALS);
     let per = cache.chunks.len().div_ceil(partials).max(1);
+    let rows = cache.chunk_rows.max(1);
     let sums: Vec<Vec<T>> = cache
         .chunks
         .par_chunks(per)
-        .zip(dx.par_chunks_mut(per * CPU_CHUNK_ROWS * d))
-        .zip(dy.par_chunks(per * CPU_CHUNK_ROWS * o))
+        .zip(dx.par_chunks_mut(per * rows * d))
+        .zip(dy.par_chunks(per * rows * o))
         .map(|((cs, dxg), dyg)| {
             let mut dd = vec![T::zero(); mlp.num_dense];
-            let rows = dxg.chunks_mut(CPU_CHUNK_ROWS * d).zip(dyg.chunks(CPU_CHUNK_ROWS * o));
-            for (c, (dxc, dyc)) in cs.iter().zip(rows) {
+            let parts = dxg.chunks_mut(rows * d).zip(dyg.chunks(rows * o));
+            for (c, (dxc, dyc)) in cs.iter().zip(parts) {
                 backward_chunk(mlp, &cache.dense, c, dyc, dxc, &mut dd);
             }
             dd
@@ -1596,6 +1612,49 @@ mod tests {
         assert!(dp1.iter().all(|v| v.is_finite()) && dp1.iter().any(|v| *v != 0.0));
         for t in [2, 3, 8] {
             let (dp, dx) = run(t);
+            assert!(dp.iter().zip(&dp1).all(|(a, b)| a.to_bits() == b.to_bits()), "{t} threads: dL/dparams differ");
+            assert!(dx.iter().zip(&dx1).all(|(a, b)| a.to_bits() == b.to_bits()), "{t} threads: dL/dx differ");
+        }
+    }
+
+    #[test]
+    fn small_inputs_are_cut_into_four_chunks_that_sum_the_same_on_any_thread_count() {
+        assert_eq!(cpu_chunk_rows(1), CPU_MIN_CHUNK_ROWS);
+        assert_eq!(cpu_chunk_rows(1024), 256);
+        assert_eq!(cpu_chunk_rows(1100), 320);
+        assert_eq!(cpu_chunk_rows(4 * CPU_CHUNK_ROWS - 1), CPU_CHUNK_ROWS);
+        assert_eq!(cpu_chunk_rows(100 * CPU_CHUNK_ROWS), CPU_CHUNK_ROWS);
+        let m = Mlp::new(cfg()).unwrap();
+        let p = m.init(Init::Default, 5);
+        // 1000 rows: chunks of 256, 256, 256 and 232; a row's output does not depend on its chunk.
+        let n = 1000;
+        let x: Vec<f32> = (0..n * 3).map(|i| ((i as f32) * 0.291).sin()).collect();
+        let dy: Vec<f32> = (0..n * 2).map(|i| ((i as f32) * 0.613).cos()).collect();
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| {
+                let (y, cache) = cpu_forward(&m, &p, &x, true).unwrap();
+                assert_eq!(cache.chunks.iter().map(|c| c.rows).collect::<Vec<_>>(), vec![256, 256, 256, 232]);
+                let (dp, dx) = cpu_backward(&m, &p, &cache, &dy).unwrap();
+                (y, dp, dx)
+            })
+        };
+        let (y1, dp1, dx1) = run(1);
+        for (r, yr) in y1.chunks(2).enumerate().step_by(97) {
+            let (one, _) = cpu_forward(&m, &p, &x[3 * r..3 * r + 3], false).unwrap();
+            assert_eq!(one, yr, "row {r}");
+        }
+        // The parameter gradient against one f64 pass over all rows.
+        let p64: Vec<f64> = p.iter().map(|&v| v as f64).collect();
+        let x64: Vec<f64> = x.iter().map(|&v| v as f64).collect();
+        let dy64: Vec<f64> = dy.iter().map(|&v| v as f64).collect();
+        let (_, c64) = cpu_forward(&m, &p64, &x64, true).unwrap();
+        let (dp64, _) = cpu_backward(&m, &p64, &c64, &dy64).unwrap();
+        let scale = dp64.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+        assert!(dp1.iter().zip(&dp64).all(|(a, b)| (*a as f64 - b).abs() <= 1e-4 * scale), "f32 chunks vs f64");
+        for t in [2, 3, 8] {
+            let (y, dp, dx) = run(t);
+            assert!(y.iter().zip(&y1).all(|(a, b)| a.to_bits() == b.to_bits()), "{t} threads: y differs");
             assert!(dp.iter().zip(&dp1).all(|(a, b)| a.to_bits() == b.to_bits()), "{t} threads: dL/dparams differ");
             assert!(dx.iter().zip(&dx1).all(|(a, b)| a.to_bits() == b.to_bits()), "{t} threads: dL/dx differ");
         }
