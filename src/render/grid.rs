@@ -5,7 +5,7 @@
 
 use rayon::prelude::*;
 
-use super::SdfBatch;
+use super::{PointSdf, SdfBatch};
 use crate::backend::BackendError;
 use crate::mesh::field::Aabb;
 use crate::mesh::grid::GridSpec;
@@ -87,6 +87,15 @@ impl SdfBatch for SdfGrid {
     fn sdf(&self, points: &[f32]) -> Result<Vec<f32>, BackendError> {
         Ok(points.par_chunks_exact(3).with_min_len(4096).map(|q| self.at([q[0], q[1], q[2]])).collect())
     }
+    fn pointwise(&self) -> Option<&dyn PointSdf> {
+        Some(self)
+    }
+}
+
+impl PointSdf for SdfGrid {
+    fn at(&self, p: [f32; 3]) -> f32 {
+        SdfGrid::at(self, p)
+    }
 }
 
 #[cfg(test)]
@@ -119,5 +128,52 @@ mod tests {
         let batch = g.sdf(&[0.0, 0.0, 0.0, 0.25, 0.0, 0.0]).unwrap();
         assert!((batch[0] + 0.5).abs() < 1e-3 && (batch[1] + 0.25).abs() < 1e-3, "{batch:?}");
         assert!(SdfGrid::sample(&sphere, 1.0, 1).is_err());
+    }
+
+    #[test]
+    fn secondary_rays_marched_one_by_one_match_the_batched_march() {
+        // A floor, a ball over it and a NaN pocket: rays from the floor and the ball's surface
+        // hit, leave, start on their own surface, run out of steps or meet NaN.
+        let field = |p: &[f32]| -> Result<Vec<f32>, BackendError> {
+            Ok(p.chunks_exact(3)
+                .map(|q| {
+                    if (q[0] - 0.6).abs() < 0.1 && (q[1] - 0.4).abs() < 0.1 && q[2].abs() < 0.1 {
+                        return f32::NAN;
+                    }
+                    (q[1] + 0.3).min(((q[0] - 0.2).powi(2) + (q[1] + 0.05).powi(2) + q[2] * q[2]).sqrt() - 0.2)
+                })
+                .collect())
+        };
+        let g = SdfGrid::sample(&field, 1.0, 97).unwrap();
+        assert!(g.pointwise().is_some());
+        let batched = |p: &[f32]| g.sdf(p);
+        assert!(batched.pointwise().is_none());
+        let mut rng = crate::util::rng(11);
+        use rand::Rng;
+        let (mut origins, mut dirs) = (Vec::new(), Vec::new());
+        for i in 0..3000 {
+            let o = if i % 2 == 0 {
+                [rng.random_range(-0.8f32..0.8), -0.3, rng.random_range(-0.8f32..0.8)]
+            } else {
+                let a: f32 = rng.random_range(0.0..std::f32::consts::TAU);
+                [0.2 + 0.2 * a.cos(), -0.05 + 0.2 * a.sin(), 0.0]
+            };
+            let d: [f32; 3] = [rng.random_range(-1.0..1.0), rng.random_range(0.0..1.0), rng.random_range(-1.0..1.0)];
+            let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-3);
+            origins.push(o);
+            dirs.push(d.map(|c| c / l));
+        }
+        let rays = crate::render::Rays { origins, dirs };
+        for steps in [1, 10, 48] {
+            let (h1, t1, e1) = crate::render::trace_secondary(&g, &rays, 0.01, steps, 5e-4, 1.0).unwrap();
+            let (h2, t2, e2) = crate::render::trace_secondary(&batched, &rays, 0.01, steps, 5e-4, 1.0).unwrap();
+            assert_eq!(h1, h2, "{steps} steps: hits");
+            assert!(t1.iter().zip(&t2).all(|(a, b)| a.to_bits() == b.to_bits()), "{steps} steps: depths");
+            assert_eq!(e1, e2, "{steps} steps: evaluations");
+            if steps == 48 {
+                let hits = h1.iter().filter(|h| **h).count();
+                assert!(hits > 50 && hits < 2900, "{hits} hits");
+            }
+        }
     }
 }

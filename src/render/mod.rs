@@ -196,6 +196,17 @@ pub trait SdfBatch {
     fn device(&self) -> Option<&dyn DeviceSdf> {
         None
     }
+    /// The same field evaluated one point at a time, where that is cheap (a sampled grid):
+    /// [`trace_secondary`] then marches each ray to its end on its own, the rays in parallel,
+    /// instead of gathering every open ray's point for a batch at each step.
+    fn pointwise(&self) -> Option<&dyn PointSdf> {
+        None
+    }
+}
+
+/// A field cheap enough to evaluate point by point (see [`SdfBatch::pointwise`]).
+pub trait PointSdf: Sync {
+    fn at(&self, p: [f32; 3]) -> f32;
 }
 
 impl<F: Fn(&[f32]) -> Result<Vec<f32>, BackendError>> SdfBatch for F {
@@ -514,6 +525,9 @@ pub fn trace_secondary(
     bound: f32,
 ) -> Result<(Vec<bool>, Vec<f32>, usize), BackendError> {
     let n = rays.len();
+    if let Some(pf) = f.pointwise() {
+        return Ok(march_each(pf, rays, start_offset, steps, threshold, bound));
+    }
     let mut hit = vec![false; n];
     let mut t_out = vec![f32::INFINITY; n];
     let mut active: Vec<(usize, f32, f32)> = (0..n)
@@ -548,6 +562,38 @@ pub fn trace_secondary(
         active = next;
     }
     Ok((hit, t_out, evals))
+}
+
+/// [`trace_secondary`]'s loop for one ray at a time, the rays in parallel: the same steps, tests
+/// and arithmetic in the same order, so the same hits, depths and evaluation count.
+fn march_each(f: &dyn PointSdf, rays: &Rays, start_offset: f32, steps: usize, threshold: f32, bound: f32) -> (Vec<bool>, Vec<f32>, usize) {
+    use rayon::prelude::*;
+    let one = |i: usize| -> (bool, f32, usize) {
+        let Some((_, t1)) = sphere_interval(rays.origins[i], rays.dirs[i], bound) else {
+            return (false, f32::INFINITY, 0);
+        };
+        let mut t = start_offset;
+        for step in 0..steps {
+            let fv = f.at(rays.at(i, t));
+            if !fv.is_finite() {
+                return (false, f32::INFINITY, step + 1);
+            }
+            if fv < threshold {
+                // At the first step: the origin's own surface (see trace_secondary).
+                return if step == 0 { (false, f32::INFINITY, 1) } else { (true, t, step + 1) };
+            }
+            let tn = t + fv;
+            if tn > t1 {
+                return (false, f32::INFINITY, step + 1);
+            }
+            t = tn;
+        }
+        (false, f32::INFINITY, steps)
+    };
+    let per: Vec<(bool, f32, usize)> = (0..rays.len()).into_par_iter().with_min_len(1024).map(one).collect();
+    let evals = per.iter().map(|r| r.2).sum();
+    let (hit, t) = per.into_iter().map(|(h, t, _)| (h, t)).unzip();
+    (hit, t, evals)
 }
 
 /// The smallest sampled field value along each ray between `t0[i]` and `t1[i]` (`samples`
