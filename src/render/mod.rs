@@ -542,21 +542,13 @@ pub fn trace_secondary(
         let v = eval_at(f, &pts, &mut evals)?;
         let mut next = Vec::with_capacity(active.len());
         for (k, &(i, t, t1)) in active.iter().enumerate() {
-            let fv = v[k];
-            if !fv.is_finite() {
-                continue;
-            }
-            if fv < threshold {
-                if step == 0 {
-                    continue; // the origin's own surface (see above)
+            match secondary_step(step, t, t1, v[k], threshold) {
+                SecondaryStep::Hit => {
+                    hit[i] = true;
+                    t_out[i] = t;
                 }
-                hit[i] = true;
-                t_out[i] = t;
-                continue;
-            }
-            let tn = t + fv;
-            if tn <= t1 {
-                next.push((i, tn, t1));
+                SecondaryStep::Open => {}
+                SecondaryStep::Next(tn) => next.push((i, tn, t1)),
             }
         }
         active = next;
@@ -564,8 +556,32 @@ pub fn trace_secondary(
     Ok((hit, t_out, evals))
 }
 
-/// [`trace_secondary`]'s loop for one ray at a time, the rays in parallel: the same steps, tests
-/// and arithmetic in the same order, so the same hits, depths and evaluation count.
+/// What a secondary ray does after its field value `fv` at `t` (step `step`, leaving at `t1`).
+enum SecondaryStep {
+    Hit,
+    /// Traced no further and not a hit: it left the bound, met a non-finite value, or started
+    /// within the threshold of its origin's own surface (see [`trace_secondary`]).
+    Open,
+    Next(f32),
+}
+
+fn secondary_step(step: usize, t: f32, t1: f32, fv: f32, threshold: f32) -> SecondaryStep {
+    if !fv.is_finite() {
+        return SecondaryStep::Open;
+    }
+    if fv < threshold {
+        return if step == 0 { SecondaryStep::Open } else { SecondaryStep::Hit };
+    }
+    let tn = t + fv;
+    if tn <= t1 {
+        SecondaryStep::Next(tn)
+    } else {
+        SecondaryStep::Open
+    }
+}
+
+/// [`trace_secondary`]'s loop for one ray at a time, the rays in parallel: the same steps
+/// ([`secondary_step`]) in the same order, so the same hits, depths and evaluation count.
 fn march_each(f: &dyn PointSdf, rays: &Rays, start_offset: f32, steps: usize, threshold: f32, bound: f32) -> (Vec<bool>, Vec<f32>, usize) {
     use rayon::prelude::*;
     let one = |i: usize| -> (bool, f32, usize) {
@@ -574,19 +590,11 @@ fn march_each(f: &dyn PointSdf, rays: &Rays, start_offset: f32, steps: usize, th
         };
         let mut t = start_offset;
         for step in 0..steps {
-            let fv = f.at(rays.at(i, t));
-            if !fv.is_finite() {
-                return (false, f32::INFINITY, step + 1);
+            match secondary_step(step, t, t1, f.at(rays.at(i, t)), threshold) {
+                SecondaryStep::Hit => return (true, t, step + 1),
+                SecondaryStep::Open => return (false, f32::INFINITY, step + 1),
+                SecondaryStep::Next(tn) => t = tn,
             }
-            if fv < threshold {
-                // At the first step: the origin's own surface (see trace_secondary).
-                return if step == 0 { (false, f32::INFINITY, 1) } else { (true, t, step + 1) };
-            }
-            let tn = t + fv;
-            if tn > t1 {
-                return (false, f32::INFINITY, step + 1);
-            }
-            t = tn;
         }
         (false, f32::INFINITY, steps)
     };
