@@ -86,8 +86,19 @@ pub struct MaterialRow {
     /// The relit PSNR after one scale per channel (what the albedo's and the light's shared
     /// scale, which the photos cannot fix, costs the figure before it).
     pub relit_aligned_psnr: f64,
+    /// Relit PSNR under each relight map (by the map's file stem), as rendered and aligned.
+    pub relit_maps: std::collections::BTreeMap<String, RelitFigures>,
+    /// `eval`'s novel-view PSNR of the relit folder's views under the learned light.
+    pub novel_view_psnr: f64,
     pub roughness_mse: f64,
     pub env_relative_l2: f64,
+}
+
+/// One relight map's scores of a variant.
+#[derive(Clone, Debug, Serialize)]
+pub struct RelitFigures {
+    pub psnr: f64,
+    pub psnr_aligned: f64,
 }
 
 fn copy_stage1(src: &Path, dst: &Path) -> anyhow::Result<()> {
@@ -147,6 +158,8 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
                 albedo_psnr: f64::NAN,
                 relit_psnr: f64::NAN,
                 relit_aligned_psnr: f64::NAN,
+                relit_maps: Default::default(),
+                novel_view_psnr: f64::NAN,
                 roughness_mse: f64::NAN,
                 env_relative_l2: f64::NAN,
             };
@@ -167,16 +180,20 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
                 };
                 row.relit_psnr = mean_relit("psnr");
                 row.relit_aligned_psnr = mean_relit("psnr_aligned");
+                if let Some(o) = m["relit"].as_object() {
+                    row.relit_maps = o.iter().map(|(k, v)| (k.clone(), RelitFigures { psnr: f(&v["psnr"]), psnr_aligned: f(&v["psnr_aligned"]) })).collect();
+                }
+                row.novel_view_psnr = f(&m["novel_view"]["psnr"]);
             }
             ctx.emit("bench_material", serde_json::to_value(&row)?);
             rows.push(row);
         }
     }
-    let mut csv = String::from("variant,lobes,indirect,boundary,geometry,backend,iterations,seconds_cache,seconds_train,it_per_s,cache_evaluations,per_batch_evaluations,blocked_fraction,heldout_psnr,albedo_psnr,relit_psnr,relit_aligned_psnr,roughness_mse,env_relative_l2\n");
+    let mut csv = String::from("variant,lobes,indirect,boundary,geometry,backend,iterations,seconds_cache,seconds_train,it_per_s,cache_evaluations,per_batch_evaluations,blocked_fraction,heldout_psnr,novel_view_psnr,albedo_psnr,relit_psnr,relit_aligned_psnr,relit_per_map,roughness_mse,env_relative_l2\n");
     for r in &rows {
         csv.push_str(&format!(
-            "{},{},{},{},{},\"{}\",{},{:.3},{:.3},{:.3},{},{},{:.5},{:.3},{:.3},{:.3},{:.3},{:.5},{:.5}\n",
-            r.variant, r.lobes, r.indirect, r.boundary, r.geometry, r.backend, r.iterations, r.seconds_cache, r.seconds_train, r.it_per_s, r.cache_evaluations, r.per_batch_evaluations, r.blocked_fraction, r.heldout_psnr, r.albedo_psnr, r.relit_psnr, r.relit_aligned_psnr, r.roughness_mse, r.env_relative_l2
+            "{},{},{},{},{},\"{}\",{},{:.3},{:.3},{:.3},{},{},{:.5},{:.3},{:.3},{:.3},{:.3},{:.3},{},{:.5},{:.5}\n",
+            r.variant, r.lobes, r.indirect, r.boundary, r.geometry, r.backend, r.iterations, r.seconds_cache, r.seconds_train, r.it_per_s, r.cache_evaluations, r.per_batch_evaluations, r.blocked_fraction, r.heldout_psnr, r.novel_view_psnr, r.albedo_psnr, r.relit_psnr, r.relit_aligned_psnr, relit_cell(&r.relit_maps), r.roughness_mse, r.env_relative_l2
         ));
     }
     crate::util::atomic_write(&args.out.join("bench-material.csv"), csv.as_bytes())?;
@@ -186,6 +203,11 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
     ctx.emit("bench_material_done", json);
     ctx.say(format!("wrote {}/bench-material.{{csv,json,svg}}", args.out.display()));
     Ok(())
+}
+
+/// The per-map relit figures as one CSV cell: `map=psnr/aligned` joined by `;`.
+fn relit_cell(maps: &std::collections::BTreeMap<String, RelitFigures>) -> String {
+    maps.iter().map(|(k, v)| format!("{k}={:.3}/{:.3}", v.psnr, v.psnr_aligned)).collect::<Vec<_>>().join(";")
 }
 
 fn chart(rows: &[MaterialRow]) -> anyhow::Result<String> {
