@@ -634,3 +634,31 @@ fn a_wgpu_training_step_keeps_the_sdf_on_the_device_and_a_checkpoint_resumes_it(
     pii_bake::testing::assert_close("SDF, straight vs resumed", &resumed.model().sdf_params, &dev.model().sdf_params, pii_bake::testing::Tolerance::new(1e-4, 1e-6));
     pii_bake::testing::assert_close("radiance net, straight vs resumed", &resumed.model().radiance_params, &dev.model().radiance_params, pii_bake::testing::Tolerance::new(1e-4, 1e-6));
 }
+
+#[test]
+fn the_fast_preset_passes_over_a_captures_pixels_once_within_its_step_bounds() {
+    use pii_bake::train::stage1::{fast_iterations, FAST_MAX_ITERATIONS, FAST_MIN_ITERATIONS};
+    assert_eq!((FAST_MIN_ITERATIONS, FAST_MAX_ITERATIONS), (500, 1500));
+    // Small captures keep the fewest steps; DTU scan37 (5.88M pixels) gets one pass; the
+    // Ethiopian head (57 views of 512²) is capped.
+    assert_eq!(fast_iterations(0, 4096), 500);
+    assert_eq!(fast_iterations(960_000, 4096), 500);
+    assert_eq!(fast_iterations(5_880_000, 4096), 1436);
+    assert_eq!(fast_iterations(57 * 512 * 512, 4096), 1500);
+    for px in [2_048_001usize, 3_000_000, 6_000_000] {
+        let n = fast_iterations(px, 4096) as usize;
+        assert!(n * 4096 >= px && (n - 1) * 4096 < px, "{px} pixels: {n} steps is not the one pass");
+    }
+    // The scene's config takes it from its training pixels: the bundled example as it is, and
+    // the same views five and seven times over (a capture of 4.8M and 6.7M pixels).
+    let scene = pii_bake::scene::load(&std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data/example"), &Default::default()).unwrap();
+    let (views, _) = pii_bake::train::cli::train_views(&scene);
+    for (copies, want) in [(1usize, 500u64), (5, 1172), (7, 1500)] {
+        let many: Vec<_> = (0..copies).flat_map(|_| views.iter().copied()).collect();
+        let cfg = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Hull, &many, 0, 1);
+        assert_eq!(cfg.sizes.train_pixels, copies * 960_000);
+        assert_eq!((cfg.rays, cfg.iterations), (4096, want), "{copies} copies");
+        // The paper preset keeps its own schedule.
+        assert_eq!(Stage1Config::for_scene(Preset::Paper, TraceMode::Refined, InitMode::Hull, &many, 0, 1).iterations, 2000);
+    }
+}

@@ -496,7 +496,7 @@ pub fn train_stage1(
     crate::util::atomic_write(&run_dir.join(RUN_SCENE), serde_json::to_string_pretty(&run_scene)?.as_bytes())?;
     let cfg = trainer.cfg.clone();
     ctx.say(format!(
-        "stage 1 ({} preset, {} tracing, {} init) on {}: {} views, {} pixels, {} rays x {} iterations; sizes from the scene: pixel footprint {:.4}, hash grid finest {} (2^{} table), mesh {} nodes",
+        "stage 1 ({} preset, {} tracing, {} init) on {}: {} views, {} pixels, {} rays x {} iterations{}; sizes from the scene: pixel footprint {:.4}, hash grid finest {} (2^{} table), mesh {} nodes",
         cfg.preset.name(),
         cfg.trace.mode.name(),
         if opts.init_mesh.is_some() && !resuming { "mesh" } else { match cfg.init { InitMode::Hull => "hull", InitMode::Sphere => "sphere" } },
@@ -505,6 +505,11 @@ pub fn train_stage1(
         data.pixels(),
         cfg.rays,
         cfg.iterations,
+        if cfg.preset == Preset::Fast && opts.iterations.is_none() && !resuming {
+            format!(" (one pass over the pixels, within {}..{})", super::stage1::FAST_MIN_ITERATIONS, super::stage1::FAST_MAX_ITERATIONS)
+        } else {
+            String::new()
+        },
         cfg.sizes.pixel_footprint,
         cfg.sizes.grid_finest,
         cfg.sizes.grid_log2_table,
