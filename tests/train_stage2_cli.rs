@@ -238,17 +238,23 @@ fn baselines_train_through_the_cli_and_resume() {
     }
 }
 
-#[test]
-fn bench_material_writes_figures_per_variant() {
+/// `bench material` on a tiny stage-1 run of the example (4 lobes, 2 steps, small batches) with
+/// `variants` naming what to measure; returns the temporary folder and the bench's output folder.
+fn bench_material(variants: &[&str]) -> (tempfile::TempDir, std::path::PathBuf) {
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
     stage1(&run);
     let out = dir.path().join("bench");
-    let o = pii(&[
-        "bench", "material", "--run", run.to_str().unwrap(), "--out", out.to_str().unwrap(), "--lobes", "4", "--indirect", "ours", "none", "--boundary", "flowing", "detached", "--geometry", "frozen", "refined", "--iterations", "2",
-        "--relight-views", "0", "--set", "points=400", "--set", "batch=32",
-    ]);
+    let mut args = vec!["bench", "material", "--run", run.to_str().unwrap(), "--out", out.to_str().unwrap(), "--lobes", "4", "--iterations", "2", "--set", "points=400", "--set", "batch=32"];
+    args.extend_from_slice(variants);
+    let o = pii(&args);
     assert!(o.status.success(), "{}", text(&o));
+    (dir, out)
+}
+
+#[test]
+fn bench_material_writes_figures_per_variant() {
+    let (_dir, out) = bench_material(&["--indirect", "ours", "none", "--boundary", "flowing", "detached", "--geometry", "frozen", "refined", "--relight-views", "0"]);
     let csv = std::fs::read_to_string(out.join("bench-material.csv")).unwrap();
     assert!(csv.lines().next().unwrap().contains(",novel_view_psnr,albedo_psnr,relit_psnr,relit_aligned_psnr,relit_per_map,roughness_mse,"), "{csv}");
     let rows: Vec<&str> = csv.lines().skip(1).collect();
@@ -265,15 +271,7 @@ fn bench_material_writes_figures_per_variant() {
 
 #[test]
 fn bench_material_scores_every_relight_map_on_a_scene_with_ground_truth() {
-    let dir = tempfile::tempdir().unwrap();
-    let run = dir.path().join("run");
-    stage1(&run);
-    let out = dir.path().join("bench");
-    let o = pii(&[
-        "bench", "material", "--run", run.to_str().unwrap(), "--out", out.to_str().unwrap(), "--lobes", "4", "--indirect", "ours", "--iterations", "2", "--relight-views", "1", "--set", "points=400", "--set",
-        "batch=32",
-    ]);
-    assert!(o.status.success(), "{}", text(&o));
+    let (_dir, out) = bench_material(&["--indirect", "ours", "--relight-views", "1"]);
     // The example's relight maps: every map in env/ but the training light.
     let mut maps: Vec<String> = std::fs::read_dir(example().join("env"))
         .unwrap()

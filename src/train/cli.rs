@@ -505,8 +505,8 @@ pub fn train_stage1(
         data.pixels(),
         cfg.rays,
         cfg.iterations,
-        if cfg.preset == Preset::Fast && opts.iterations.is_none() && !resuming {
-            format!(" (one pass over the pixels, within {}..{})", super::stage1::FAST_MIN_ITERATIONS, super::stage1::FAST_MAX_ITERATIONS)
+        if cfg.preset == Preset::Fast && cfg.iterations == super::stage1::fast_iterations(cfg.sizes.train_pixels, cfg.rays) {
+            format!(" (from the pixels: one pass of the rays over them, kept within {}..{})", super::stage1::FAST_MIN_ITERATIONS, super::stage1::FAST_MAX_ITERATIONS)
         } else {
             String::new()
         },
