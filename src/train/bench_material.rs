@@ -174,15 +174,16 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
                 row.albedo_psnr = f(&m["albedo"]["psnr_aligned"]);
                 row.roughness_mse = f(&m["roughness"]["mse"]);
                 row.env_relative_l2 = f(&m["env"]["relative_l2"]);
-                let mean_relit = |key: &str| -> f64 {
-                    let v: Vec<f64> = m["relit"].as_object().map(|o| o.values().map(|v| f(&v[key])).filter(|v| v.is_finite()).collect()).unwrap_or_default();
-                    crate::eval::cli::mean(&v).unwrap_or(f64::NAN)
-                };
-                row.relit_psnr = mean_relit("psnr");
-                row.relit_aligned_psnr = mean_relit("psnr_aligned");
                 if let Some(o) = m["relit"].as_object() {
                     row.relit_maps = o.iter().map(|(k, v)| (k.clone(), RelitFigures { psnr: f(&v["psnr"]), psnr_aligned: f(&v["psnr_aligned"]) })).collect();
                 }
+                // The means over the maps, of the finite figures.
+                let mean_relit = |g: fn(&RelitFigures) -> f64| -> f64 {
+                    let v: Vec<f64> = row.relit_maps.values().map(g).filter(|v| v.is_finite()).collect();
+                    crate::eval::cli::mean(&v).unwrap_or(f64::NAN)
+                };
+                row.relit_psnr = mean_relit(|r| r.psnr);
+                row.relit_aligned_psnr = mean_relit(|r| r.psnr_aligned);
                 row.novel_view_psnr = f(&m["novel_view"]["psnr"]);
             }
             ctx.emit("bench_material", serde_json::to_value(&row)?);
