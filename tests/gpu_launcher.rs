@@ -172,3 +172,31 @@ fn the_kernel_profile_times_each_kernel_without_changing_results() {
     g.read_f32(&yb).unwrap();
     assert!(g.kernel_times().is_empty(), "off again: the profile is dropped");
 }
+
+#[test]
+fn the_host_time_of_buffers_bind_groups_and_submissions_is_counted() {
+    let g = gpu();
+    let c0 = g.counters();
+    let x = g.upload_f32("x", &[1.0f32, 2.0]);
+    let y = g.upload_f32("y", &[0.0f32, 0.0]);
+    let z = g.zeros_f32("z", 4);
+    let c1 = g.counters();
+    assert_eq!(c1.buffers - c0.buffers, 3.0, "two uploads and a zero buffer are three buffers made");
+    assert!(c1.buffer_seconds > c0.buffer_seconds, "making them took host time");
+    assert_eq!(c1.bind_group_seconds, c0.bind_group_seconds, "no launch yet, no bind group");
+    for _ in 0..3 {
+        util_kernels::axpy(&g, 1.0, &x, &y).unwrap();
+    }
+    let c2 = g.counters();
+    assert!(c2.bind_group_seconds > c1.bind_group_seconds, "each launch makes a bind group");
+    assert!(c2.queue_seconds > c1.queue_seconds, "queued batches are recorded");
+    assert_eq!(g.read_f32(&y).unwrap(), vec![3.0, 6.0]);
+    let c3 = g.counters();
+    assert_eq!(c3.buffers - c2.buffers, 1.0, "a readback makes one staging buffer");
+    assert!(c3.queue_seconds > c2.queue_seconds, "the submission is counted");
+    // Per step: the means between two snapshots.
+    let per = c3.per(&c0, 2);
+    assert_eq!(per.buffers, 2.0);
+    assert!((per.bind_group_seconds - (c3.bind_group_seconds - c0.bind_group_seconds) / 2.0).abs() < 1e-12);
+    drop(z);
+}

@@ -348,3 +348,32 @@ fn profile_kernels_reports_each_kernels_gpu_time_per_step() {
     let r: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("train_report.json")).unwrap()).unwrap();
     assert!(r["gpu_kernels_per_step"].is_null());
 }
+
+#[test]
+fn bench_train_writes_its_figures_and_reports_a_failed_variant_instead_of_losing_the_others() {
+    // A tiny bench: each file is written, the curve has the hull baseline and the variant's
+    // points, and its summary row has the figures.
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("bench");
+    let tiny = ["bench", "train", "--variant", "fast-refined-sphere", "--max-iterations", "2", "--eval-every", "1", "--mesh-resolution", "24", "--downscale", "4", "--rays", "64", "--out"];
+    let o = pii(&[&tiny[..], &[out.to_str().unwrap()]].concat());
+    assert!(o.status.success(), "{}", text(&o));
+    let j: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("bench-train.json")).unwrap()).unwrap();
+    let row = &j["summary"][0];
+    assert!(row.get("error").is_none() && row["iterations"] == 2, "{row}");
+    let csv = std::fs::read_to_string(out.join("bench-train.csv")).unwrap();
+    assert!(csv.contains("hull (preview)") && csv.lines().filter(|l| l.contains("fast-refined-sphere")).count() == 3, "{csv}");
+    assert!(std::fs::read_to_string(out.join("bench-train.svg")).unwrap().contains("<svg"));
+    // A variant that fails is a row naming its error, and the files are still written; where
+    // every variant failed the bench says so and exits non-zero.
+    let out2 = dir.path().join("bench2");
+    let mut bad = tiny.to_vec();
+    let i = bad.iter().position(|a| *a == "64").unwrap();
+    bad[i] = "0";
+    let o = pii(&[&bad[..], &[out2.to_str().unwrap()]].concat());
+    assert!(!o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("every variant failed") && text(&o).contains("fast-refined-sphere: failed"), "{}", text(&o));
+    let j: serde_json::Value = serde_json::from_slice(&std::fs::read(out2.join("bench-train.json")).unwrap()).unwrap();
+    let err = j["summary"][0]["error"].as_str().unwrap();
+    assert!(err.contains("rays"), "{err}");
+}

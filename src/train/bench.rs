@@ -227,97 +227,117 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
         }
 
         for (name, &(preset, mode, init)) in variants.iter().zip(&parsed) {
-            let mut cfg = Stage1Config::for_scene(preset, mode, init, &views, held.len(), scene.downscale);
-            cfg.iterations = args.max_iterations.min(cfg.iterations.max(1));
-            if let Some(lr) = args.lr_field {
-                cfg.lr_field = lr;
-            }
-            if let Some(r) = args.rays {
-                cfg.rays = r;
-            }
-            cfg = super::stage1::apply_overrides(cfg, &args.overrides)?;
-            let mut tr = Trainer::new(cfg.clone())?;
-            let mut wall = 0.0f64;
-            if init == InitMode::Hull {
-                let t = Instant::now();
-                tr.fit_to_grid(&backend, &init_grid, cfg.hull_fit_steps, |_, _| {})?;
-                wall += t.elapsed().as_secs_f64() + init_secs;
-            }
-            let mut reached: Option<f64> = None;
-            let mut record = |tr: &Trainer, wall: f64, points: &mut Vec<CurvePoint>| {
-                let f = |p: &[f32]| tr.model().sdf(&backend, p);
-                let (c, n) = measure(&backend, &f, &gt, gt_size, args.mesh_resolution);
-                if reached.is_none() && c <= target {
-                    reached = Some(wall);
+            // A variant that fails (a preset that has found no surface yet in its time budget, say)
+            // is reported with its error and the bench goes on; the files are rewritten after every
+            // variant, so a bench stopped early keeps what it measured.
+            let mut run_variant = || -> anyhow::Result<serde_json::Value> {
+                let mut cfg = Stage1Config::for_scene(preset, mode, init, &views, held.len(), scene.downscale);
+                cfg.iterations = args.max_iterations.min(cfg.iterations.max(1));
+                if let Some(lr) = args.lr_field {
+                    cfg.lr_field = lr;
                 }
-                ctx.say(format!("{sname} {name}: step {} at {wall:.1} s: Chamfer {:.3}%, NC {n:.4}", tr.step, 100.0 * c));
-                points.push(CurvePoint { scene: sname.clone(), variant: name.clone(), backend: backend.name().into(), step: tr.step, wall_seconds: wall, chamfer_rel: c, normal_consistency: n });
-                (c, n)
-            };
-            tr.sync_host()?;
-            record(&tr, wall, &mut points);
-            let mut train_secs = 0.0;
-            let mut last = (f64::NAN, f64::NAN);
-            let (mut evals, mut steps) = (0usize, 0u64);
-            while tr.step < cfg.iterations && wall < args.seconds {
-                let t = Instant::now();
-                let st = tr.train_step(&backend, &data)?;
-                evals += st.field_evaluations;
-                steps += 1;
-                let dt = t.elapsed().as_secs_f64();
-                wall += dt;
-                train_secs += dt;
-                if tr.step % args.eval_every == 0 {
-                    // Outside the timed part: the host copy of a wgpu run's SDF is read back.
+                if let Some(r) = args.rays {
+                    cfg.rays = r;
+                }
+                cfg = super::stage1::apply_overrides(cfg, &args.overrides)?;
+                let mut tr = Trainer::new(cfg.clone())?;
+                let mut wall = 0.0f64;
+                if init == InitMode::Hull {
+                    let t = Instant::now();
+                    tr.fit_to_grid(&backend, &init_grid, cfg.hull_fit_steps, |_, _| {})?;
+                    wall += t.elapsed().as_secs_f64() + init_secs;
+                }
+                let mut reached: Option<f64> = None;
+                let mut record = |tr: &Trainer, wall: f64, points: &mut Vec<CurvePoint>| {
+                    let f = |p: &[f32]| tr.model().sdf(&backend, p);
+                    let (c, n) = measure(&backend, &f, &gt, gt_size, args.mesh_resolution);
+                    if reached.is_none() && c <= target {
+                        reached = Some(wall);
+                    }
+                    ctx.say(format!("{sname} {name}: step {} at {wall:.1} s: Chamfer {:.3}%, NC {n:.4}", tr.step, 100.0 * c));
+                    points.push(CurvePoint { scene: sname.clone(), variant: name.clone(), backend: backend.name().into(), step: tr.step, wall_seconds: wall, chamfer_rel: c, normal_consistency: n });
+                    (c, n)
+                };
+                tr.sync_host()?;
+                record(&tr, wall, &mut points);
+                let mut train_secs = 0.0;
+                let mut last = (f64::NAN, f64::NAN);
+                let (mut evals, mut steps) = (0usize, 0u64);
+                while tr.step < cfg.iterations && wall < args.seconds {
+                    let t = Instant::now();
+                    let st = tr.train_step(&backend, &data)?;
+                    evals += st.field_evaluations;
+                    steps += 1;
+                    let dt = t.elapsed().as_secs_f64();
+                    wall += dt;
+                    train_secs += dt;
+                    if tr.step % args.eval_every == 0 {
+                        // Outside the timed part: the host copy of a wgpu run's SDF is read back.
+                        tr.sync_host()?;
+                        last = record(&tr, wall, &mut points);
+                    }
+                }
+                if tr.step % args.eval_every != 0 {
                     tr.sync_host()?;
                     last = record(&tr, wall, &mut points);
                 }
-            }
-            if tr.step % args.eval_every != 0 {
-                tr.sync_host()?;
-                last = record(&tr, wall, &mut points);
-            }
-            let held_views: Vec<&View> = if held.is_empty() { views.iter().take(4).copied().collect() } else { held.iter().take(8).copied().collect() };
-            let ev = evaluate_views(&backend, tr.model(), &cfg.trace, &held_views, 128 * 128)?;
-            let shipped = super::cli::trained_mesh_config(&cfg.sizes, None, None);
-            let cells = if args.asset_bound_cells.is_empty() { vec![shipped.bound_cells] } else { args.asset_bound_cells.clone() };
-            let resolutions = if args.asset_resolution.is_empty() { vec![shipped.resolution] } else { args.asset_resolution.clone() };
-            let mut assets = Vec::new();
-            for &r in &resolutions {
-                for &c in &cells {
-                    let a = measure_asset(&backend, tr.model(), &crate::mesh::MeshConfig { resolution: r, bound_cells: c, ..shipped.clone() }, &gt, gt_size)?;
-                    ctx.say(format!(
-                        "{sname} {name}: asset mesh {r}^3, bound {c} cells: {} triangles, Chamfer {:.3}%, NC {:.4} (faces) / {:.4} (shading normals)",
-                        a["triangles"], 100.0 * a["chamfer_rel"].as_f64().unwrap_or(f64::NAN), a["normal_consistency"].as_f64().unwrap_or(f64::NAN),
-                        a["shading_normal_consistency"].as_f64().unwrap_or(f64::NAN)
-                    ));
-                    assets.push(a);
+                let held_views: Vec<&View> = if held.is_empty() { views.iter().take(4).copied().collect() } else { held.iter().take(8).copied().collect() };
+                let ev = evaluate_views(&backend, tr.model(), &cfg.trace, &held_views, 128 * 128)?;
+                let shipped = super::cli::trained_mesh_config(&cfg.sizes, None, None);
+                let cells = if args.asset_bound_cells.is_empty() { vec![shipped.bound_cells] } else { args.asset_bound_cells.clone() };
+                let resolutions = if args.asset_resolution.is_empty() { vec![shipped.resolution] } else { args.asset_resolution.clone() };
+                let mut assets = Vec::new();
+                for &r in &resolutions {
+                    for &c in &cells {
+                        let a = measure_asset(&backend, tr.model(), &crate::mesh::MeshConfig { resolution: r, bound_cells: c, ..shipped.clone() }, &gt, gt_size)?;
+                        ctx.say(format!(
+                            "{sname} {name}: asset mesh {r}^3, bound {c} cells: {} triangles, Chamfer {:.3}%, NC {:.4} (faces) / {:.4} (shading normals)",
+                            a["triangles"], 100.0 * a["chamfer_rel"].as_f64().unwrap_or(f64::NAN), a["normal_consistency"].as_f64().unwrap_or(f64::NAN),
+                            a["shading_normal_consistency"].as_f64().unwrap_or(f64::NAN)
+                        ));
+                        assets.push(a);
+                    }
                 }
-            }
-            summary.push(serde_json::json!({
-                "scene": sname, "variant": name, "backend": backend.describe(),
-                "iterations": tr.step, "it_per_s": steps as f64 / train_secs.max(1e-9), "wall_seconds": wall,
-                "field_evaluations_per_step": evals as f64 / steps.max(1) as f64,
-                "chamfer_rel": last.0, "normal_consistency": last.1, "hull_chamfer_rel": hc, "hull_normal_consistency": hn,
-                "seconds_to_half_hull_chamfer": reached, "held_out_psnr": ev.psnr, "mask_iou": ev.mask_iou, "skipped_steps": tr.skipped,
-                "asset": assets,
-            }));
+                Ok(serde_json::json!({
+                    "scene": sname, "variant": name, "backend": backend.describe(),
+                    "iterations": tr.step, "it_per_s": steps as f64 / train_secs.max(1e-9), "wall_seconds": wall,
+                    "field_evaluations_per_step": evals as f64 / steps.max(1) as f64,
+                    "chamfer_rel": last.0, "normal_consistency": last.1, "hull_chamfer_rel": hc, "hull_normal_consistency": hn,
+                    "seconds_to_half_hull_chamfer": reached, "held_out_psnr": ev.psnr, "mask_iou": ev.mask_iou, "skipped_steps": tr.skipped,
+                    "asset": assets,
+                }))
+            };
+            let row = run_variant().unwrap_or_else(|e| {
+                ctx.say(format!("{sname} {name}: failed: {e:#}"));
+                serde_json::json!({ "scene": sname, "variant": name, "backend": backend.describe(), "error": format!("{e:#}") })
+            });
+            summary.push(row);
+            write_outputs(&args.out, &summary, &points)?;
         }
     }
-    let mut csv = String::from("scene,variant,backend,step,wall_seconds,chamfer_rel,normal_consistency\n");
-    for p in &points {
-        csv.push_str(&format!("{},{},{},{},{:.3},{:.6},{:.5}\n", p.scene, p.variant, p.backend, p.step, p.wall_seconds, p.chamfer_rel, p.normal_consistency));
+    let json = write_outputs(&args.out, &summary, &points)?;
+    if let Some(e) = summary.iter().all(|s| s.get("error").is_some()).then(|| summary.first()).flatten() {
+        anyhow::bail!("every variant failed (figures so far in {}); the first: {}", args.out.display(), e["error"].as_str().unwrap_or_default());
     }
-    crate::util::atomic_write(&args.out.join("bench-train.csv"), csv.as_bytes())?;
-    let json = serde_json::json!({ "machine_threads": rayon::current_num_threads(), "summary": summary, "points": points });
-    crate::util::atomic_write(&args.out.join("bench-train.json"), serde_json::to_string_pretty(&json)?.as_bytes())?;
-    crate::util::atomic_write(&args.out.join("bench-train.svg"), chart(&points)?.as_bytes())?;
     for s in &summary {
         ctx.say(s.to_string());
     }
     ctx.emit("bench_train", json);
     ctx.say(format!("wrote {}/bench-train.{{csv,json,svg}}", args.out.display()));
     Ok(())
+}
+
+/// Write `bench-train.{csv,json,svg}` from what is measured so far; returns the JSON.
+fn write_outputs(out: &Path, summary: &[serde_json::Value], points: &[CurvePoint]) -> anyhow::Result<serde_json::Value> {
+    let mut csv = String::from("scene,variant,backend,step,wall_seconds,chamfer_rel,normal_consistency\n");
+    for p in points {
+        csv.push_str(&format!("{},{},{},{},{:.3},{:.6},{:.5}\n", p.scene, p.variant, p.backend, p.step, p.wall_seconds, p.chamfer_rel, p.normal_consistency));
+    }
+    crate::util::atomic_write(&out.join("bench-train.csv"), csv.as_bytes())?;
+    let json = serde_json::json!({ "machine_threads": rayon::current_num_threads(), "summary": summary, "points": points });
+    crate::util::atomic_write(&out.join("bench-train.json"), serde_json::to_string_pretty(&json)?.as_bytes())?;
+    crate::util::atomic_write(&out.join("bench-train.svg"), chart(points)?.as_bytes())?;
+    Ok(json)
 }
 
 fn chart(points: &[CurvePoint]) -> anyhow::Result<String> {

@@ -307,6 +307,13 @@ struct Counters {
     read_bytes: AtomicU64,
     uploads: AtomicU64,
     upload_bytes: AtomicU64,
+    /// Host time spent making buffers (outputs, uploads, readback staging), and how many.
+    buffers: AtomicU64,
+    buffer_ns: AtomicU64,
+    /// Host time spent making each launch's bind group (validation scope included).
+    bind_ns: AtomicU64,
+    /// Host time spent recording queued batches and submitting them.
+    queue_ns: AtomicU64,
 }
 
 /// A snapshot of [`GpuContext::counters`]; `later.per(&earlier, steps)` gives the mean per step between them.
@@ -320,6 +327,12 @@ pub struct GpuCounters {
     pub read_bytes: f64,
     pub uploads: f64,
     pub upload_bytes: f64,
+    /// Buffers made, and the host's time making them (where a step's host time goes besides
+    /// its waits: buffers, bind groups, recording and submitting).
+    pub buffers: f64,
+    pub buffer_seconds: f64,
+    pub bind_group_seconds: f64,
+    pub queue_seconds: f64,
 }
 
 impl GpuCounters {
@@ -335,6 +348,10 @@ impl GpuCounters {
             read_bytes: (self.read_bytes - earlier.read_bytes) / n,
             uploads: (self.uploads - earlier.uploads) / n,
             upload_bytes: (self.upload_bytes - earlier.upload_bytes) / n,
+            buffers: (self.buffers - earlier.buffers) / n,
+            buffer_seconds: (self.buffer_seconds - earlier.buffer_seconds) / n,
+            bind_group_seconds: (self.bind_group_seconds - earlier.bind_group_seconds) / n,
+            queue_seconds: (self.queue_seconds - earlier.queue_seconds) / n,
         }
     }
 }
@@ -475,11 +492,29 @@ impl GpuContext {
             read_bytes: g(&c.read_bytes),
             uploads: g(&c.uploads),
             upload_bytes: g(&c.upload_bytes),
+            buffers: g(&c.buffers),
+            buffer_seconds: g(&c.buffer_ns) * 1e-9,
+            bind_group_seconds: g(&c.bind_ns) * 1e-9,
+            queue_seconds: g(&c.queue_ns) * 1e-9,
         }
     }
 
     fn count(&self, which: &AtomicU64, by: u64) {
         which.fetch_add(by, Ordering::Relaxed);
+    }
+
+    /// Add the host time since `t` to a counter.
+    fn count_since(&self, which: &AtomicU64, t: Instant) {
+        self.count(which, t.elapsed().as_nanos() as u64);
+    }
+
+    /// A new buffer, its making counted ([`GpuCounters::buffers`]).
+    fn new_buffer(&self, desc: &wgpu::BufferDescriptor) -> wgpu::Buffer {
+        let t = Instant::now();
+        let b = self.device.create_buffer(desc);
+        self.count(&self.counters.buffers, 1);
+        self.count_since(&self.counters.buffer_ns, t);
+        b
     }
 
     // ---- buffers -------------------------------------------------------------------------
@@ -496,11 +531,14 @@ impl GpuContext {
         let contents = if bytes.is_empty() { &padded[..] } else { bytes };
         self.count(&self.counters.uploads, 1);
         self.count(&self.counters.upload_bytes, contents.len() as u64);
+        let t = Instant::now();
         let buffer = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some(label),
             contents,
             usage: Self::storage_usage(),
         });
+        self.count(&self.counters.buffers, 1);
+        self.count_since(&self.counters.buffer_ns, t);
         GpuBuffer { buffer, len: bytes.len() / 4 }
     }
 
@@ -514,7 +552,7 @@ impl GpuContext {
 
     /// A zero-filled buffer of `len` 4-byte elements.
     pub fn zeros_f32(&self, label: &str, len: usize) -> GpuBuffer {
-        let buffer = self.device.create_buffer(&wgpu::BufferDescriptor {
+        let buffer = self.new_buffer(&wgpu::BufferDescriptor {
             label: Some(label),
             size: (len.max(1) * 4) as u64,
             usage: Self::storage_usage(),
@@ -547,6 +585,13 @@ impl GpuContext {
     /// Record a submitted batch's commands into the open encoder; submitted with the others at
     /// the next read, write or wait (or once [`PENDING_MAX`] batches are queued).
     fn defer(&self, commands: &[Command]) -> Result<(), BackendError> {
+        let t = Instant::now();
+        let r = self.defer_timed(commands);
+        self.count_since(&self.counters.queue_ns, t);
+        r
+    }
+
+    fn defer_timed(&self, commands: &[Command]) -> Result<(), BackendError> {
         let slot = |c: &Command| match c {
             Command::Dispatch { uniform: Some(u), .. } => u.len().div_ceil(self.uniform_align) * self.uniform_align,
             _ => 0,
@@ -557,7 +602,7 @@ impl GpuContext {
         }
         let mut p = self.pending.lock().expect("pending batches poisoned");
         if (p.uniforms.len() + need) as u64 > ARENA_BYTES {
-            self.submit_locked(&mut p)?;
+            self.submit_locked_timed(&mut p)?;
         }
         for c in commands {
             let offset = p.uniforms.len();
@@ -569,7 +614,7 @@ impl GpuContext {
         }
         p.batches += 1;
         if p.batches >= PENDING_MAX {
-            return self.submit_locked(&mut p);
+            return self.submit_locked_timed(&mut p);
         }
         Ok(())
     }
@@ -583,6 +628,13 @@ impl GpuContext {
     /// Submit the open encoder (`pending` held locked, so batches reach the queue in the order
     /// they were recorded). A validation error in any recorded pass surfaces here, naming it.
     fn submit_locked(&self, pending: &mut Pending) -> Result<(), BackendError> {
+        let t = Instant::now();
+        let r = self.submit_locked_timed(pending);
+        self.count_since(&self.counters.queue_ns, t);
+        r
+    }
+
+    fn submit_locked_timed(&self, pending: &mut Pending) -> Result<(), BackendError> {
         pending.batches = 0;
         pending.pass = None;
         let Some(mut enc) = pending.encoder.take() else {
@@ -662,7 +714,7 @@ impl GpuContext {
                 staged.push(None);
                 continue;
             }
-            let staging = self.device.create_buffer(&wgpu::BufferDescriptor {
+            let staging = self.new_buffer(&wgpu::BufferDescriptor {
                 label: Some("readback"),
                 size,
                 usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
@@ -869,13 +921,16 @@ impl Batch<'_> {
             };
             entries.push(wgpu::BindGroupEntry { binding: i as u32 + 1, resource: buf.as_entire_binding() });
         }
+        let t = Instant::now();
         let scope = ctx.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let bg = ctx.device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some(&kernel.label),
             layout: &kernel.layout,
             entries: &entries,
         });
-        if let Some(err) = pollster::block_on(scope.pop()) {
+        let err = pollster::block_on(scope.pop());
+        ctx.count_since(&ctx.counters.bind_ns, t);
+        if let Some(err) = err {
             return Err(BackendError::Validation { label: kernel.label.clone(), message: err.to_string() });
         }
         self.commands.push(Command::Dispatch {
