@@ -4,14 +4,15 @@
 # same machine: wgpu against the cpu backend on its cores, and wgpu with the device optimiser
 # against the host one.
 #
-#   PII=<pii-bake binary> OUT=<folder> PARTS="bake profile train bench nn" scripts/gpu_figures.sh [STAGE1_ITERS] [STAGE2_ITERS]
+#   PII=<pii-bake binary> OUT=<folder> PARTS="bake profile train bench material nn" scripts/gpu_figures.sh [STAGE1_ITERS] [STAGE2_ITERS]
 #
-# PARTS picks what runs, in this order: `bake` (the README's quick-start bake of the bundled
+# PARTS picks what runs, in this order (material before bench): `bake` (the README's quick-start bake of the bundled
 # example, default preset, on wgpu then on the cpu backend, each timed end to end, Blender check
 # off), `profile` (every kernel timed over 50 stage-1 and 30 stage-2 steps), `train` (stage 1 for
 # STAGE1_ITERS on wgpu, wgpu with the host optimiser and cpu, then stage 2 for STAGE2_ITERS on each
 # backend), `bench` (`bench train` on wgpu, its default variants, BENCH_SECONDS of training each,
-# default 40: Chamfer against wall time), `nn` (`bench nn`). Default: all five. STEP_TIMEOUT (s, default 300) bounds each run so
+# default 40: Chamfer against wall time), `material` (a default stage 1, then `bench material` on
+# wgpu: 32 lobes, indirect ours and none, 2 relit views), `nn` (`bench nn`). Default: all six. STEP_TIMEOUT (s, default 300) bounds each run so
 # that a slow one cannot spend the lease. Other defaults: PII=target/release/pii-bake, OUT=out/gpu,
 # 300 and 300 iterations; NN_ARGS: extra `bench nn` arguments (a quick local check of this script
 # on lavapipe: NN_ARGS="--networks fast --batches 64 --iters 1 --gemm-rows 64", BAKE_ARGS="--iterations
@@ -28,7 +29,7 @@ PII="${PII:-target/release/pii-bake}"
 OUT="${OUT:-out/gpu}"
 S1="${1:-300}"
 S2="${2:-300}"
-PARTS="${PARTS:-bake profile train bench nn}"
+PARTS="${PARTS:-bake profile train bench material nn}"
 STEP_TIMEOUT="${STEP_TIMEOUT:-300}"
 scene=tests/data/example
 runs="$(mktemp -d)"
@@ -71,6 +72,10 @@ if want train; then
     cp -r "$runs/wgpu" "$runs/wgpu_s2" 2>/dev/null && cp -r "$runs/wgpu" "$runs/cpu_s2" 2>/dev/null
     step "$PII" --backend wgpu -q train "$scene" --out "$runs/wgpu_s2" --stage material --material-iterations "$S2"
     step "$PII" --backend cpu -q train "$scene" --out "$runs/cpu_s2" --stage material --material-iterations "$S2"
+fi
+if want material; then
+    step "$PII" --backend wgpu -q train "$scene" --out "$runs/material_s1" --stage geometry
+    step "$PII" --backend wgpu -q bench material --run "$runs/material_s1" --out "$runs/bench_material" --lobes 32 --indirect ours none --relight-views 2
 fi
 if want bench; then
     step "$PII" --backend wgpu -q bench train --out "$runs/bench_train" --seconds "${BENCH_SECONDS:-40}"
@@ -123,5 +128,5 @@ for name in ["wgpu_profile", "wgpu_profile_s2"]:
     kernels += [f"{x['kernel']:32} {1e3 * x['seconds']:9.3f} ms {100 * x['seconds'] / total:5.1f}% {x['launches']:7.1f} launches" for x in ks]
 (out / "kernels.txt").write_text("\n".join(kernels) + "\n")
 EOF
-tar -czf "$OUT/reports.tar.gz" -C "$runs" $(cd "$runs" && ls -d nn_wgpu.json */*_report.json */run/*_report.json */*.csv */run/*.csv bench_train/* 2>/dev/null) 2>>"$log"
+tar -czf "$OUT/reports.tar.gz" -C "$runs" $(cd "$runs" && ls -d nn_wgpu.json */*_report.json */run/*_report.json */*.csv */run/*.csv bench_train/* bench_material/bench-material.* 2>/dev/null) 2>>"$log"
 cat "$OUT/summary.txt" 2>/dev/null
