@@ -508,3 +508,45 @@ fn a_known_light_is_fitted_into_the_run_frame_and_kept_fixed() {
     assert!(!o.status.success());
     assert!(text(&o).contains("r_000.png") && text(&o).contains("exr"), "{}", text(&o));
 }
+
+#[test]
+fn under_auto_with_a_gpu_stage_two_times_both_backends_keeps_the_faster_and_a_resume_keeps_it() {
+    // lavapipe stands in for the GPU (PII_ADAPTER names it, so `auto` takes it). Its steps are far
+    // slower than the cpu backend's, so the run must keep the cpu backend.
+    let dir = tempfile::tempdir().unwrap();
+    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
+    stage1(&a);
+    copy_dir(&a, &b);
+    let ex = example();
+    let go = |run: &Path, backend: &str, extra: &[&str]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_pii-bake"))
+            .env("XDG_RUNTIME_DIR", std::env::temp_dir())
+            .env("PII_ADAPTER", "llvmpipe")
+            .args(["--backend", backend, "train", ex.to_str().unwrap(), "--out", run.to_str().unwrap()])
+            .args(TINY2)
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let report = |run: &Path| -> serde_json::Value { serde_json::from_slice(&std::fs::read(run.join("material_report.json")).unwrap()).unwrap() };
+    let o = go(&a, "auto", &["--material-iterations", "18", "--stop-at", "17"]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("steps run on the cpu backend"), "{}", text(&o));
+    let sb = &report(&a)["step_backend"];
+    assert_eq!(sb["chosen"], "cpu", "{sb}");
+    let (gpu, cpu) = (sb["seconds_per_step"]["wgpu"].as_f64().unwrap(), sb["seconds_per_step"]["cpu"].as_f64().unwrap());
+    assert!(cpu > 0.0 && gpu > cpu, "{sb}");
+    let saved: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("material.json")).unwrap()).unwrap();
+    assert_eq!(saved["config"]["step_backend"], "cpu", "the choice is saved with the run");
+    // A resumed run keeps the choice without timing again.
+    let o = go(&a, "auto", &["--material-iterations", "18", "--resume"]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(!text(&o).contains("timed steps each"), "{}", text(&o));
+    let sb = &report(&a)["step_backend"];
+    assert!(sb["chosen"] == "cpu" && sb["why"].as_str().unwrap().contains("chosen earlier"), "{sb}");
+    // Asked for by --backend: every step runs there and nothing is timed.
+    let o = go(&b, "wgpu", &["--material-iterations", "3"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let sb = &report(&b)["step_backend"];
+    assert!(sb["chosen"] == "wgpu" && sb["why"].as_str().unwrap().contains("--backend") && sb["seconds_per_step"].as_object().unwrap().is_empty(), "{sb}");
+}

@@ -202,6 +202,115 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &s
     Ok((cfg, why))
 }
 
+/// Stage 2's steps keep their parameters on the host and take the backend per step, so the
+/// loop can run them where they are faster. On an NVIDIA H200 beside its 16 cores the cpu
+/// backend ran the example's stage-2 steps at 79.6 it/s against 56.1 on wgpu (the shading runs on
+/// the host either way and the networks are small), while a smaller CPU beside the same GPU
+/// would turn that around: no fixed rule holds. Under `--backend auto` with a GPU the loop
+/// times [`StepBackend::TIMED`] steps on each (after [`StepBackend::WARM`] untimed ones, which
+/// pay for compiling kernels) and keeps the faster, recorded in the run's config
+/// (`step_backend`) so a resumed run keeps it (one resumed before the choice times again from
+/// where it resumed, so its first steps may run where the straight run's did not: the same
+/// figures to float rounding, not bit for bit). `--backend wgpu` or `cpu`, `--refine-geometry`
+/// (whose SDF lives with the run's backend) and `--profile-kernels` run every step on the run's
+/// backend.
+pub(crate) struct StepBackend {
+    /// The run's backend and the cpu backend, while both are candidates.
+    candidates: Vec<(&'static str, Backend)>,
+    /// Seconds of each candidate's timed steps.
+    timed: Vec<Vec<f64>>,
+    /// The candidate being measured, or the one chosen.
+    at: usize,
+    steps_at: usize,
+    chosen: bool,
+    why: String,
+}
+
+impl StepBackend {
+    /// Untimed steps on a candidate before it is timed.
+    pub const WARM: usize = 2;
+    /// Timed steps per candidate.
+    pub const TIMED: usize = 6;
+
+    pub fn new(backend: &Backend, ctx: &Context, cfg: &Stage2Config) -> Self {
+        let one = |name: &'static str, b: Backend, why: String| Self { candidates: vec![(name, b)], timed: vec![Vec::new()], at: 0, steps_at: 0, chosen: true, why };
+        let own = if backend.is_gpu() { "wgpu" } else { "cpu" };
+        let eligible = matches!(ctx.backend_choice, crate::backend::BackendChoice::Auto) && backend.is_gpu() && !cfg.refine_geometry && !ctx.profile_kernels;
+        match cfg.step_backend.as_deref() {
+            Some("cpu") if eligible => return one("cpu", Backend::cpu(), "chosen earlier in this run (step_backend)".into()),
+            Some(_) if eligible => return one(own, backend.clone(), "chosen earlier in this run (step_backend)".into()),
+            _ => {}
+        }
+        if !eligible {
+            let why = if !backend.is_gpu() {
+                "the run's backend"
+            } else if !matches!(ctx.backend_choice, crate::backend::BackendChoice::Auto) {
+                "the run's backend (asked for by --backend)"
+            } else if cfg.refine_geometry {
+                "the run's backend (--refine-geometry keeps the SDF there)"
+            } else {
+                "the run's backend (--profile-kernels)"
+            };
+            return one(own, backend.clone(), why.into());
+        }
+        Self { candidates: vec![("wgpu", backend.clone()), ("cpu", Backend::cpu())], timed: vec![Vec::new(), Vec::new()], at: 0, steps_at: 0, chosen: false, why: String::new() }
+    }
+
+    /// The backend for the next step.
+    pub fn current(&self) -> &Backend {
+        &self.candidates[self.at].1
+    }
+
+    /// The chosen backend's name, once chosen.
+    pub fn chosen(&self) -> Option<&'static str> {
+        self.chosen.then_some(self.candidates[self.at].0)
+    }
+
+    /// Record a step's seconds on [`StepBackend::current`]. Returns a line to show once the
+    /// choice is made.
+    pub fn record(&mut self, seconds: f64) -> Option<String> {
+        if self.chosen {
+            return None;
+        }
+        self.steps_at += 1;
+        if self.steps_at > Self::WARM {
+            self.timed[self.at].push(seconds);
+        }
+        if self.steps_at < Self::WARM + Self::TIMED {
+            return None;
+        }
+        if self.at + 1 < self.candidates.len() {
+            self.at += 1;
+            self.steps_at = 0;
+            return None;
+        }
+        let per = self.per_step();
+        self.at = if per[1] < per[0] { 1 } else { 0 };
+        self.chosen = true;
+        self.why = format!("the faster of {} timed steps on each", Self::TIMED);
+        Some(format!(
+            "stage 2: steps run on the {} backend ({:.1} ms per step on wgpu, {:.1} ms on cpu, {} timed steps each)",
+            self.candidates[self.at].0,
+            1e3 * per[0],
+            1e3 * per[1],
+            Self::TIMED
+        ))
+    }
+
+    /// Each candidate's mean seconds per timed step (NaN where none was timed).
+    fn per_step(&self) -> Vec<f64> {
+        self.timed.iter().map(|t| if t.is_empty() { f64::NAN } else { t.iter().sum::<f64>() / t.len() as f64 }).collect()
+    }
+
+    /// What the report says: the backend chosen, why, and what was measured.
+    pub fn report(&self) -> serde_json::Value {
+        let per = self.per_step();
+        let measured: serde_json::Map<String, serde_json::Value> =
+            self.candidates.iter().zip(&per).filter(|(_, p)| p.is_finite()).map(|((n, _), p)| (n.to_string(), serde_json::json!(p))).collect();
+        serde_json::json!({ "chosen": self.chosen(), "why": self.why, "seconds_per_step": measured })
+    }
+}
+
 /// Train stage 2 on the stage-1 run in `run_dir`.
 #[allow(clippy::too_many_arguments)]
 pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, seed: u64, run_dir: &Path, resume: bool, stop_at: Option<u64>, backend: &Backend, ctx: &Context) -> anyhow::Result<Stage2Run> {
@@ -292,6 +401,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     let t_loop = Instant::now();
     let step0 = trainer.step;
     let costs = super::cli::StepCosts::start(backend);
+    let mut step_backend = StepBackend::new(backend, ctx, &cfg);
     let end = stop_at.unwrap_or(cfg.iterations).min(cfg.iterations);
     let mut last = Stage2Stats::default();
     let mut retrace_s = 0.0;
@@ -304,7 +414,12 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         }
         cache.refresh(backend, &geom, &cfg, &trainer.model.axes())?;
         retrace_s += tr.elapsed().as_secs_f64();
-        let s = trainer.train_step_with(backend, &cache, Some(&mut geom))?;
+        let t_step = Instant::now();
+        let s = trainer.train_step_with(step_backend.current(), &cache, Some(&mut geom))?;
+        if let Some(line) = step_backend.record(t_step.elapsed().as_secs_f64()) {
+            pb.suspend(|| ctx.say(line));
+            trainer.model.cfg.step_backend = step_backend.chosen().map(str::to_string);
+        }
         curve.push(curve_line(&s, ts.elapsed().as_secs_f64()));
         let its = (trainer.step - step0) as f64 / t_loop.elapsed().as_secs_f64().max(1e-9);
         pb.set_position(trainer.step);
@@ -388,6 +503,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "stage": "material",
         "preset": cfg.preset,
         "backend": backend.describe(),
+        "step_backend": step_backend.report(),
         "config": cfg,
         "sizes": { "lobes": cfg.lobes, "lobes_without_energy": idle, "points": cache.len(), "batch": cfg.batch, "parameters": trainer.model.num_params(), "why": why },
         "cache": { "points": cache.len(), "blocked_fraction": cache.blocked_fraction(), "boundary_fraction": cache.boundary_fraction(cfg.boundary_epsilon), "field_evaluations": cache.evaluations, "seconds": seconds_cache, "lobes_retraced": cache.retraced, "seconds_retracing": retrace_s,

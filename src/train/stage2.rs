@@ -235,6 +235,13 @@ pub struct Stage2Config {
     pub geometry_retrace_every: u64,
     pub seed: u64,
     pub checkpoint_every: u64,
+    /// The backend that runs the training steps (`cpu` or `wgpu`), once chosen: under `--backend
+    /// auto` on a GPU the run times a few steps on each and keeps the faster
+    /// (`material::StepBackend`); recorded here so a resumed run keeps it. None: not chosen yet
+    /// (or the run's own backend where there is no choice). `--material-set step_backend=cpu`
+    /// forces it.
+    #[serde(default)]
+    pub step_backend: Option<String>,
 }
 
 impl Stage2Config {
@@ -326,6 +333,7 @@ impl Stage2Config {
             geometry_retrace_every: default_geometry_retrace(),
             seed: 0,
             checkpoint_every: 100,
+            step_backend: None,
         }
     }
 
@@ -333,6 +341,9 @@ impl Stage2Config {
         let bad = |m: &str| Err(BackendError::Config(format!("stage 2: {m}")));
         if self.lobes == 0 || self.lobes > 1024 {
             return bad("lobes must be in 1..=1024");
+        }
+        if !matches!(self.step_backend.as_deref(), None | Some("cpu") | Some("wgpu")) {
+            return bad("step_backend must be cpu or wgpu");
         }
         if self.batch == 0 || self.points == 0 || self.latent_dim == 0 {
             return bad("batch, points and latent size must be > 0");
