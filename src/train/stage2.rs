@@ -238,8 +238,8 @@ pub struct Stage2Config {
     /// The backend that runs the training steps (`cpu` or `wgpu`), once chosen: under `--backend
     /// auto` on a GPU the run times a few steps on each and keeps the faster
     /// (`material::StepBackend`); recorded here so a resumed run keeps it. None: not chosen yet
-    /// (or the run's own backend where there is no choice). `--material-set step_backend=cpu`
-    /// forces it.
+    /// (or the run's own backend where there is no choice). Under `--backend auto` with a GPU,
+    /// `--material-set step_backend=cpu` (or `wgpu`) forces it.
     #[serde(default)]
     pub step_backend: Option<String>,
 }
