@@ -6,9 +6,10 @@
 #
 #   PII=<pii-bake binary> OUT=<folder> PARTS="bake profile train bench material nn" scripts/gpu_figures.sh [STAGE1_ITERS] [STAGE2_ITERS]
 #
-# PARTS picks what runs, in this order (material before bench): `bake` (the README's quick-start bake of the bundled
-# example, default preset, on wgpu then on the cpu backend, each timed end to end, Blender check
-# off), `profile` (every kernel timed over 50 stage-1 and 30 stage-2 steps), `train` (stage 1 for
+# PARTS picks what runs, in this order (material before bench): `bake` (the README's quick-start
+# bake of the bundled example, default preset, with --backend auto (stage 2's steps on whichever
+# backend timed faster), wgpu and cpu, each timed end to end, Blender check off), `profile` (every
+# kernel timed over 50 stage-1 and 30 stage-2 steps), `train` (stage 1 for
 # STAGE1_ITERS on wgpu, wgpu with the host optimiser and cpu, then stage 2 for STAGE2_ITERS on each
 # backend), `bench` (`bench train` on wgpu, its default variants, BENCH_SECONDS of training each,
 # default 40: Chamfer against wall time), `material` (a default stage 1, then `bench material` on
@@ -51,6 +52,7 @@ want() { case " $PARTS " in *" $1 "*) return 0 ;; esac; return 1; }
 step "$PII" devices
 if want bake; then
     # The quick-start path, end to end: stage 1 + stage 2 + export + eval, each backend.
+    step "$PII" --backend auto bake "$scene" --out "$runs/bake_auto" --no-blender-check ${BAKE_ARGS:-}
     step "$PII" --backend wgpu bake "$scene" --out "$runs/bake_wgpu" --no-blender-check ${BAKE_ARGS:-}
     step "$PII" --backend cpu bake "$scene" --out "$runs/bake_cpu" --no-blender-check ${BAKE_ARGS:-}
 fi
@@ -100,7 +102,7 @@ def run_line(name, r):
             f"eval {ev.get('psnr', float('nan')):.2f} dB  [{r['backend']}]"
             + (f"\n{'':22}host per step: {g.get('buffers', 0):.1f} buffers made in {1e3 * g.get('buffer_seconds', 0):.2f} ms, "
                f"bind groups {1e3 * g.get('bind_group_seconds', 0):.2f} ms, recording + submitting {1e3 * g.get('queue_seconds', 0):.2f} ms" if g else ""))
-for name in ["bake_wgpu", "bake_cpu"]:
+for name in ["bake_auto", "bake_wgpu", "bake_cpu"]:
     b = load(runs / name / "bake_report.json")
     if b is None:
         lines.append(f"{name:20} no bake report")
@@ -112,6 +114,7 @@ for name in ["bake_wgpu", "bake_cpu"]:
         if r is not None:
             lines.append(run_line(f"  {stage}", r))
             if stage == "stage 2":
+                lines.append("    steps on " + json.dumps(r.get("step_backend")))
                 lines.append("    eval " + json.dumps(r.get("eval"))[:800])
     lines.append("  ground truth " + json.dumps(b.get("ground_truth"))[:800])
 for name in ["wgpu", "wgpu_host_adam", "cpu", "wgpu_profile", "wgpu_profile_s2", "wgpu_s2", "cpu_s2"]:
