@@ -182,6 +182,8 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
     let parsed: Vec<_> = variants.iter().map(|v| parse_variant(v)).collect::<anyhow::Result<_>>()?;
     let mut points: Vec<CurvePoint> = Vec::new();
     let mut summary = Vec::new();
+    // What the files hold, rewritten after every variant.
+    let mut json = serde_json::Value::Null;
     for scene_path in &scenes {
         let scene = crate::scene::load(scene_path, &ReadOptions { downscale: args.downscale, ..Default::default() })?;
         let gt_path = ["gt/mesh.obj", "gt/mesh.ply"].iter().map(|r| scene_path.join(r)).find(|p| p.is_file());
@@ -312,12 +314,11 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
                 serde_json::json!({ "scene": sname, "variant": name, "backend": backend.describe(), "error": format!("{e:#}") })
             });
             summary.push(row);
-            write_outputs(&args.out, &summary, &points)?;
+            json = write_outputs(&args.out, &summary, &points)?;
         }
     }
-    let json = write_outputs(&args.out, &summary, &points)?;
-    if let Some(e) = summary.iter().all(|s| s.get("error").is_some()).then(|| summary.first()).flatten() {
-        anyhow::bail!("every variant failed (figures so far in {}); the first: {}", args.out.display(), e["error"].as_str().unwrap_or_default());
+    if !summary.is_empty() && summary.iter().all(|s| s.get("error").is_some()) {
+        anyhow::bail!("every variant failed (figures so far in {}); the first: {}", args.out.display(), summary[0]["error"].as_str().unwrap_or_default());
     }
     for s in &summary {
         ctx.say(s.to_string());

@@ -508,13 +508,18 @@ impl GpuContext {
         self.count(which, t.elapsed().as_nanos() as u64);
     }
 
-    /// A new buffer, its making counted ([`GpuCounters::buffers`]).
-    fn new_buffer(&self, desc: &wgpu::BufferDescriptor) -> wgpu::Buffer {
+    /// A buffer made by `make`, counted with the host time it took ([`GpuCounters::buffers`]).
+    fn counted_buffer(&self, make: impl FnOnce() -> wgpu::Buffer) -> wgpu::Buffer {
         let t = Instant::now();
-        let b = self.device.create_buffer(desc);
+        let b = make();
         self.count(&self.counters.buffers, 1);
         self.count_since(&self.counters.buffer_ns, t);
         b
+    }
+
+    /// A new (uninitialised) buffer, counted.
+    fn new_buffer(&self, desc: &wgpu::BufferDescriptor) -> wgpu::Buffer {
+        self.counted_buffer(|| self.device.create_buffer(desc))
     }
 
     // ---- buffers -------------------------------------------------------------------------
@@ -531,14 +536,9 @@ impl GpuContext {
         let contents = if bytes.is_empty() { &padded[..] } else { bytes };
         self.count(&self.counters.uploads, 1);
         self.count(&self.counters.upload_bytes, contents.len() as u64);
-        let t = Instant::now();
-        let buffer = self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-            label: Some(label),
-            contents,
-            usage: Self::storage_usage(),
+        let buffer = self.counted_buffer(|| {
+            self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor { label: Some(label), contents, usage: Self::storage_usage() })
         });
-        self.count(&self.counters.buffers, 1);
-        self.count_since(&self.counters.buffer_ns, t);
         GpuBuffer { buffer, len: bytes.len() / 4 }
     }
 
@@ -586,12 +586,13 @@ impl GpuContext {
     /// the next read, write or wait (or once [`PENDING_MAX`] batches are queued).
     fn defer(&self, commands: &[Command]) -> Result<(), BackendError> {
         let t = Instant::now();
-        let r = self.defer_timed(commands);
+        let r = self.defer_uncounted(commands);
         self.count_since(&self.counters.queue_ns, t);
         r
     }
 
-    fn defer_timed(&self, commands: &[Command]) -> Result<(), BackendError> {
+    /// [`GpuContext::defer`] without adding its time to the queue counter.
+    fn defer_uncounted(&self, commands: &[Command]) -> Result<(), BackendError> {
         let slot = |c: &Command| match c {
             Command::Dispatch { uniform: Some(u), .. } => u.len().div_ceil(self.uniform_align) * self.uniform_align,
             _ => 0,
@@ -602,7 +603,7 @@ impl GpuContext {
         }
         let mut p = self.pending.lock().expect("pending batches poisoned");
         if (p.uniforms.len() + need) as u64 > ARENA_BYTES {
-            self.submit_locked_timed(&mut p)?;
+            self.submit_locked_uncounted(&mut p)?;
         }
         for c in commands {
             let offset = p.uniforms.len();
@@ -614,7 +615,7 @@ impl GpuContext {
         }
         p.batches += 1;
         if p.batches >= PENDING_MAX {
-            return self.submit_locked_timed(&mut p);
+            return self.submit_locked_uncounted(&mut p);
         }
         Ok(())
     }
@@ -629,12 +630,14 @@ impl GpuContext {
     /// they were recorded). A validation error in any recorded pass surfaces here, naming it.
     fn submit_locked(&self, pending: &mut Pending) -> Result<(), BackendError> {
         let t = Instant::now();
-        let r = self.submit_locked_timed(pending);
+        let r = self.submit_locked_uncounted(pending);
         self.count_since(&self.counters.queue_ns, t);
         r
     }
 
-    fn submit_locked_timed(&self, pending: &mut Pending) -> Result<(), BackendError> {
+    /// [`GpuContext::submit_locked`] without adding its time to the queue counter (for callers
+    /// whose own time is counted already).
+    fn submit_locked_uncounted(&self, pending: &mut Pending) -> Result<(), BackendError> {
         pending.batches = 0;
         pending.pass = None;
         let Some(mut enc) = pending.encoder.take() else {
