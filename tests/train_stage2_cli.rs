@@ -511,8 +511,9 @@ fn a_known_light_is_fitted_into_the_run_frame_and_kept_fixed() {
 
 #[test]
 fn under_auto_with_a_gpu_stage_two_times_both_backends_keeps_the_faster_and_a_resume_keeps_it() {
-    // lavapipe stands in for the GPU (PII_ADAPTER names it, so `auto` takes it). Its steps are far
-    // slower than the cpu backend's, so the run must keep the cpu backend.
+    // lavapipe stands in for the GPU (PII_ADAPTER names it, so `auto` takes it). The run keeps
+    // whichever backend its own timings found faster (lavapipe's steps are usually several times
+    // slower, but the test asserts the rule, not the machine's speeds).
     let dir = tempfile::tempdir().unwrap();
     let (a, b) = (dir.path().join("a"), dir.path().join("b"));
     stage1(&a);
@@ -531,19 +532,20 @@ fn under_auto_with_a_gpu_stage_two_times_both_backends_keeps_the_faster_and_a_re
     let report = |run: &Path| -> serde_json::Value { serde_json::from_slice(&std::fs::read(run.join("material_report.json")).unwrap()).unwrap() };
     let o = go(&a, "auto", &["--material-iterations", "18", "--stop-at", "17"]);
     assert!(o.status.success(), "{}", text(&o));
-    assert!(text(&o).contains("steps run on the cpu backend"), "{}", text(&o));
-    let sb = &report(&a)["step_backend"];
-    assert_eq!(sb["chosen"], "cpu", "{sb}");
+    let sb = report(&a)["step_backend"].clone();
     let (gpu, cpu) = (sb["seconds_per_step"]["wgpu"].as_f64().unwrap(), sb["seconds_per_step"]["cpu"].as_f64().unwrap());
-    assert!(cpu > 0.0 && gpu > cpu, "{sb}");
+    assert!(cpu > 0.0 && gpu > 0.0, "both backends timed: {sb}");
+    let faster = if cpu < gpu { "cpu" } else { "wgpu" };
+    assert_eq!(sb["chosen"], faster, "{sb}");
+    assert!(text(&o).contains(&format!("steps run on the {faster} backend")), "{}", text(&o));
     let saved: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("material.json")).unwrap()).unwrap();
-    assert_eq!(saved["config"]["step_backend"], "cpu", "the choice is saved with the run");
+    assert_eq!(saved["config"]["step_backend"], faster, "the choice is saved with the run");
     // A resumed run keeps the choice without timing again.
     let o = go(&a, "auto", &["--material-iterations", "18", "--resume"]);
     assert!(o.status.success(), "{}", text(&o));
     assert!(!text(&o).contains("timed steps each"), "{}", text(&o));
     let sb = &report(&a)["step_backend"];
-    assert!(sb["chosen"] == "cpu" && sb["why"].as_str().unwrap().contains("chosen earlier"), "{sb}");
+    assert!(sb["chosen"] == faster && sb["why"].as_str().unwrap().contains("chosen earlier"), "{sb}");
     // Asked for by --backend: every step runs there and nothing is timed.
     let o = go(&b, "wgpu", &["--material-iterations", "3"]);
     assert!(o.status.success(), "{}", text(&o));
