@@ -63,6 +63,7 @@ fn identical_prediction_is_perfect() {
     assert_eq!(f(&m["albedo"]["psnr_aligned"]), 100.0);
     assert_eq!(f(&m["roughness"]["mse"]), 0.0);
     assert!(f(&m["env"]["relative_l2"]) < 1e-6, "{}", m["env"]);
+    assert!(f(&m["env"]["irradiance_error"]) < 1e-6, "{}", m["env"]);
     assert!((f(&m["env"]["scale"][0]) - 0.5).abs() < 1e-6);
     // Distances to the other surface: zero up to rounding for identical meshes.
     assert!(f(&m["mesh"]["chamfer"]) < 1e-9, "{}", m["mesh"]);

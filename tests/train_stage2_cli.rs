@@ -305,6 +305,11 @@ fn bench_material_scores_every_relight_map_on_a_scene_with_ground_truth() {
         assert_eq!(*e, format!("{name}={:.3}/{:.3}", v["psnr"].as_f64().unwrap(), v["psnr_aligned"].as_f64().unwrap()), "{csv}");
     }
     assert!(r["novel_view_psnr"].as_f64().unwrap().is_finite() && r["albedo_psnr"].as_f64().unwrap().is_finite(), "{r}");
+    // The light's error as the shading sees it (diffuse irradiance over all normals), in both files.
+    let irr = r["env_irradiance_error"].as_f64().unwrap();
+    assert!(irr.is_finite() && irr >= 0.0, "{r}");
+    let col = header.iter().position(|h| *h == "env_irradiance_error").expect("env_irradiance_error column");
+    assert_eq!(row[col], format!("{irr:.5}"), "{csv}");
 }
 
 #[test]

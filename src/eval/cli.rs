@@ -416,7 +416,7 @@ pub fn run(args: &EvalArgs, ctx: &Context) -> anyhow::Result<()> {
         ctx.say(format!("normal       mean angular error {} degrees", f(&n["mae_degrees"])));
     }
     if let Some(e) = report.get("env") {
-        ctx.say(format!("environment  rel. L2 {}  log-MSE {} (scale {})", f(&e["relative_l2"]), f(&e["log_mse"]), e["scale"]));
+        ctx.say(format!("environment  irradiance error {}  rel. L2 {}  log-MSE {} (scale {})", f(&e["irradiance_error"]), f(&e["relative_l2"]), f(&e["log_mse"]), e["scale"]));
     }
     if let Some(m) = report.get("mesh") {
         ctx.say(format!("mesh         Chamfer {}  normal consistency {}", f(&m["chamfer"]), f(&m["normal_consistency"])));

@@ -179,6 +179,12 @@ pub struct EnvError {
     pub relative_l2: f64,
     /// Solid-angle-weighted MSE of log(1 + x) after alignment (robust to the sun's dynamic range).
     pub log_mse: f64,
+    /// Relative L2 over all normals of the diffuse irradiance each map casts, after its own
+    /// per-channel scale alignment ([`crate::sg::fit::irradiance_error`]): how wrong a Lambertian
+    /// surface lit by the prediction is. `relative_l2` of a map with a sun is nearly all the sun's
+    /// few pixels (about 1 for any light that does not put a sun of the right size in the right
+    /// pixels); this is what the light does to the shading.
+    pub irradiance_error: f64,
 }
 
 pub fn env_error(pred: &[f32], gt: &[f32], width: usize, height: usize) -> EnvError {
@@ -193,7 +199,9 @@ pub fn env_error(pred: &[f32], gt: &[f32], width: usize, height: usize) -> EnvEr
     let gt_energy = weighted_mse(gt, &vec![0.0; gt.len()], 3, Some(&w));
     let log = |v: &[f32]| -> Vec<f32> { v.iter().map(|x| x.max(0.0).ln_1p()).collect() };
     let log_mse = weighted_mse(&log(&aligned), &log(gt), 3, Some(&w));
-    EnvError { scale: s, mse, relative_l2: if gt_energy > 0.0 { (mse / gt_energy).sqrt() } else { 0.0 }, log_mse }
+    let (sp, sg) = (crate::sg::fit::sh9_of_map(pred, width, height), crate::sg::fit::sh9_of_map(gt, width, height));
+    let irradiance_error = crate::sg::fit::irradiance_error(&sp, &sg, crate::sg::fit::irradiance_scale(&sp, &sg));
+    EnvError { scale: s, mse, relative_l2: if gt_energy > 0.0 { (mse / gt_energy).sqrt() } else { 0.0 }, log_mse, irradiance_error }
 }
 
 /// Bilinear resampling of a latlong RGB map to another size (u wraps, v clamps), for env comparison.
@@ -296,6 +304,20 @@ mod tests {
         let noisy: Vec<f32> = gt.iter().zip(noise(gt.len(), 0.1, 5)).map(|(v, n)| v + n).collect();
         let e = env_error(&noisy, &gt, w, h);
         assert!((e.mse - 0.01).abs() < 0.001, "{e:?}");
+        // The irradiance error: 0 for a scaled copy, small for noise, large for a sun moved to
+        // the other side of the sky, which the radiance error cannot tell from a sun a few
+        // pixels off.
+        let e = env_error(&pred, &gt, w, h);
+        assert!(e.irradiance_error < 1e-6, "{e:?}");
+        let sun = |u: usize| -> Vec<f32> {
+            (0..w * h * 3).map(|i| { let (x, y) = ((i / 3) % w, (i / 3) / w); if y == h / 4 && (x == u || x == u + 1) { 500.0 } else { 0.5 } }).collect()
+        };
+        let (here, near, opposite) = (sun(8), sun(9), sun(8 + w / 2));
+        let (n, o) = (env_error(&near, &here, w, h), env_error(&opposite, &here, w, h));
+        assert!(n.relative_l2 > 0.8 && o.relative_l2 > 0.99, "{n:?} {o:?}");
+        assert!(n.irradiance_error < 0.1 && o.irradiance_error > 0.5, "{n:?} {o:?}");
+        let e = env_error(&noisy, &gt, w, h);
+        assert!(e.irradiance_error < 0.01, "{e:?}");
         let r = resample_latlong(&gt, w, h, w, h);
         crate::testing::assert_close("resample identity", &r, &gt, crate::testing::Tolerance::new(1e-6, 1e-6));
     }

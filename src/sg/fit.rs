@@ -508,21 +508,78 @@ pub fn fit_error(env: &EnvSgs, rgb: &[f32], width: usize, height: usize, conv: L
             }
         },
     );
-    let (mut num, mut den) = (0.0f64, 0.0f64);
-    for c in 0..3 {
-        for i in 0..9 {
-            let a2 = cosine_band(i).powi(2);
-            let (t, f) = (s[6 + c * 9 + i], s[33 + c * 9 + i]);
-            num += a2 * (f - t) * (f - t);
-            den += a2 * t * t;
-        }
-    }
+    let coeffs = |o: usize| -> Sh9Rgb { [0, 1, 2].map(|c| std::array::from_fn(|i| s[o + c * 9 + i])) };
     FitError {
         relative_l2: (s[0] / s[1].max(1e-30)).sqrt(),
         relative_log_l2: (s[2] / s[3].max(1e-30)).sqrt(),
         energy_ratio: s[4] / s[5].max(1e-30),
-        irradiance_error: (num / den.max(1e-30)).sqrt(),
+        irradiance_error: irradiance_error(&coeffs(33), &coeffs(6), [1.0; 3]),
     }
+}
+
+/// Order-2 spherical-harmonic coefficients of an RGB radiance distribution, per channel.
+pub type Sh9Rgb = [[f64; 9]; 3];
+
+/// The order-2 SH projection of a `width`×`height` latlong RGB map (negative values count as 0).
+/// Any latlong layout gives the same [`irradiance_error`] between two maps of one layout: the
+/// error is over all normals, so a rotation of both leaves it unchanged.
+pub fn sh9_of_map(rgb: &[f32], width: usize, height: usize) -> Sh9Rgb {
+    let dphi_dtheta = 2.0 * std::f64::consts::PI / width as f64 * std::f64::consts::PI / height as f64;
+    let s = crate::util::fold_ordered(
+        height,
+        1,
+        || [0.0f64; 27],
+        |s, y| {
+            let w = row_weight(y, height) * dphi_dtheta;
+            for x in 0..width {
+                let sh = sh9(latlong_dir(LatlongConvention::OpenExrUsd, x, y, width, height));
+                for c in 0..3 {
+                    let t = (rgb[(y * width + x) * 3 + c] as f64).max(0.0);
+                    for (i, b) in sh.iter().enumerate() {
+                        s[c * 9 + i] += w * t * b;
+                    }
+                }
+            }
+        },
+        |a, b| {
+            for (x, y) in a.iter_mut().zip(&b) {
+                *x += y;
+            }
+        },
+    );
+    [0, 1, 2].map(|c| std::array::from_fn(|i| s[c * 9 + i]))
+}
+
+/// Relative L2 over all normals of the diffuse irradiance E(n) = ∫ L(ω) max(0, n·ω) dω that
+/// `pred` (scaled per channel by `scale`) casts, against `truth`'s: both from their SH
+/// projections (see [`FitError::irradiance_error`]). It reads what a Lambertian asset relit by
+/// the light sees, which a radiance-space error of a map with a sun does not (there the sun's
+/// few pixels are nearly all of the norm).
+pub fn irradiance_error(pred: &Sh9Rgb, truth: &Sh9Rgb, scale: [f64; 3]) -> f64 {
+    let (mut num, mut den) = (0.0f64, 0.0f64);
+    for c in 0..3 {
+        for i in 0..9 {
+            let a2 = cosine_band(i).powi(2);
+            let (t, f) = (truth[c][i], scale[c] * pred[c][i]);
+            num += a2 * (f - t) * (f - t);
+            den += a2 * t * t;
+        }
+    }
+    (num / den.max(1e-30)).sqrt()
+}
+
+/// The per-channel scale of `pred` that minimises [`irradiance_error`] against `truth` (1 where
+/// `pred` casts no light in a channel).
+pub fn irradiance_scale(pred: &Sh9Rgb, truth: &Sh9Rgb) -> [f64; 3] {
+    [0, 1, 2].map(|c| {
+        let (mut ft, mut ff) = (0.0f64, 0.0f64);
+        for i in 0..9 {
+            let a2 = cosine_band(i).powi(2);
+            ft += a2 * pred[c][i] * truth[c][i];
+            ff += a2 * pred[c][i] * pred[c][i];
+        }
+        if ff > 0.0 { ft / ff } else { 1.0 }
+    })
 }
 
 /// Result of one fit.

@@ -92,6 +92,8 @@ pub struct MaterialRow {
     pub novel_view_psnr: f64,
     pub roughness_mse: f64,
     pub env_relative_l2: f64,
+    /// `eval`'s environment irradiance error (see [`crate::eval::EnvError::irradiance_error`]).
+    pub env_irradiance_error: f64,
 }
 
 /// One relight map's scores of a variant.
@@ -162,6 +164,7 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
                 novel_view_psnr: f64::NAN,
                 roughness_mse: f64::NAN,
                 env_relative_l2: f64::NAN,
+                env_irradiance_error: f64::NAN,
             };
             if has_gt && args.relight_views > 0 {
                 let rel = dir.join("relit");
@@ -174,6 +177,7 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
                 row.albedo_psnr = f(&m["albedo"]["psnr_aligned"]);
                 row.roughness_mse = f(&m["roughness"]["mse"]);
                 row.env_relative_l2 = f(&m["env"]["relative_l2"]);
+                row.env_irradiance_error = f(&m["env"]["irradiance_error"]);
                 if let Some(o) = m["relit"].as_object() {
                     row.relit_maps = o.iter().map(|(k, v)| (k.clone(), RelitFigures { psnr: f(&v["psnr"]), psnr_aligned: f(&v["psnr_aligned"]) })).collect();
                 }
@@ -190,11 +194,11 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
             rows.push(row);
         }
     }
-    let mut csv = String::from("variant,lobes,indirect,boundary,geometry,backend,iterations,seconds_cache,seconds_train,it_per_s,cache_evaluations,per_batch_evaluations,blocked_fraction,heldout_psnr,novel_view_psnr,albedo_psnr,relit_psnr,relit_aligned_psnr,relit_per_map,roughness_mse,env_relative_l2\n");
+    let mut csv = String::from("variant,lobes,indirect,boundary,geometry,backend,iterations,seconds_cache,seconds_train,it_per_s,cache_evaluations,per_batch_evaluations,blocked_fraction,heldout_psnr,novel_view_psnr,albedo_psnr,relit_psnr,relit_aligned_psnr,relit_per_map,roughness_mse,env_relative_l2,env_irradiance_error\n");
     for r in &rows {
         csv.push_str(&format!(
-            "{},{},{},{},{},\"{}\",{},{:.3},{:.3},{:.3},{},{},{:.5},{:.3},{:.3},{:.3},{:.3},{:.3},{},{:.5},{:.5}\n",
-            r.variant, r.lobes, r.indirect, r.boundary, r.geometry, r.backend, r.iterations, r.seconds_cache, r.seconds_train, r.it_per_s, r.cache_evaluations, r.per_batch_evaluations, r.blocked_fraction, r.heldout_psnr, r.novel_view_psnr, r.albedo_psnr, r.relit_psnr, r.relit_aligned_psnr, relit_cell(&r.relit_maps), r.roughness_mse, r.env_relative_l2
+            "{},{},{},{},{},\"{}\",{},{:.3},{:.3},{:.3},{},{},{:.5},{:.3},{:.3},{:.3},{:.3},{:.3},{},{:.5},{:.5},{:.5}\n",
+            r.variant, r.lobes, r.indirect, r.boundary, r.geometry, r.backend, r.iterations, r.seconds_cache, r.seconds_train, r.it_per_s, r.cache_evaluations, r.per_batch_evaluations, r.blocked_fraction, r.heldout_psnr, r.novel_view_psnr, r.albedo_psnr, r.relit_psnr, r.relit_aligned_psnr, relit_cell(&r.relit_maps), r.roughness_mse, r.env_relative_l2, r.env_irradiance_error
         ));
     }
     crate::util::atomic_write(&args.out.join("bench-material.csv"), csv.as_bytes())?;
