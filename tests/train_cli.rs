@@ -19,13 +19,18 @@ fn train(run: &Path, extra: &[&str]) -> std::process::Output {
     pii(&a)
 }
 
-/// The loss curve without the timing column.
+/// The loss curve without the timing column; every line has the header's fields.
 fn curve(run: &Path) -> Vec<String> {
-    std::fs::read_to_string(run.join("loss_curve.csv"))
-        .unwrap()
-        .lines()
+    let csv = std::fs::read_to_string(run.join("loss_curve.csv")).unwrap();
+    let header: Vec<&str> = csv.lines().next().unwrap().split(',').collect();
+    let secs = header.iter().position(|h| *h == "seconds").expect("a seconds column");
+    csv.lines()
         .skip(1)
-        .map(|l| l.rsplit_once(',').unwrap().0.to_string())
+        .map(|l| {
+            let f: Vec<&str> = l.split(',').collect();
+            assert_eq!(f.len(), header.len(), "{l}");
+            f.iter().enumerate().filter(|(i, _)| *i != secs).map(|(_, v)| *v).collect::<Vec<_>>().join(",")
+        })
         .collect()
 }
 
@@ -44,6 +49,11 @@ fn resumed_run_follows_the_straight_run_and_exports() {
     assert!(text(&o).contains("resuming"), "{}", text(&o));
     let (ca, cb) = (curve(&a), curve(&b));
     assert_eq!(ca.len(), 6);
+    // The normal-smoothness part (on in the fast preset) is in the curve, beside the others.
+    let csv = std::fs::read_to_string(a.join("loss_curve.csv")).unwrap();
+    let col = csv.lines().next().unwrap().split(',').position(|h| h == "smoothness").expect("a smoothness column");
+    let smooth: Vec<f64> = csv.lines().skip(1).map(|l| l.split(',').nth(col).unwrap().parse().unwrap()).collect();
+    assert!(smooth.iter().all(|v| v.is_finite() && *v >= 0.0) && smooth.iter().any(|v| *v > 0.0), "{smooth:?}");
     assert_eq!(ca, cb, "interrupted + resumed run must follow the straight run's loss curve");
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("train_report.json")).unwrap()).unwrap();
     assert_eq!(report["steps"], 6);

@@ -226,22 +226,28 @@ pub(crate) fn read_curve(path: &Path, upto: u64, max_bytes: u64) -> Vec<String> 
 
 fn curve_line(s: &StepStats, secs: f64) -> String {
     format!(
-        "{},{:.6e},{:.6e},{:.6e},{:.6e},{:.3},{},{},{},{:.4e},{},{:.4}",
-        s.step, s.loss, s.rgb, s.eikonal, s.mask, s.psnr, s.surface_rays, s.mask_rays, s.alpha, s.lr_field, s.applied, secs
+        "{},{:.6e},{:.6e},{:.6e},{:.6e},{:.3},{},{},{},{:.4e},{},{:.4},{:.6e}",
+        s.step, s.loss, s.rgb, s.eikonal, s.mask, s.psnr, s.surface_rays, s.mask_rays, s.alpha, s.lr_field, s.applied, secs, s.smoothness
     )
 }
 
 /// Write a loss-curve CSV (`header` line, then `lines`) atomically.
 pub(crate) fn write_curve(path: &Path, header: &str, lines: &[String]) -> Result<(), DataError> {
     let mut s = format!("{header}\n");
+    let columns = header.split(',').count();
     for l in lines {
         s.push_str(l);
+        // A run resumed from a curve written before a column was added: its earlier lines get
+        // that column empty, so every line has the header's fields.
+        for _ in l.split(',').count()..columns {
+            s.push(',');
+        }
         s.push('\n');
     }
     crate::util::atomic_write(path, s.as_bytes())
 }
 
-const CURVE_HEADER: &str = "step,loss,rgb,eikonal,mask,psnr,surface_rays,mask_rays,alpha,lr,applied,seconds";
+const CURVE_HEADER: &str = "step,loss,rgb,eikonal,mask,psnr,surface_rays,mask_rays,alpha,lr,applied,seconds,smoothness";
 
 /// The training loop's progress bar (position, rate and ETA; the caller sets the message).
 pub(crate) fn training_progress(ctx: &Context, len: u64, label: &str) -> indicatif::ProgressBar {
@@ -530,7 +536,8 @@ pub fn train_stage1(
         curve.push(curve_line(&s, ts.elapsed().as_secs_f64()));
         let its = (trainer.step - step0) as f64 / t_loop.elapsed().as_secs_f64().max(1e-9);
         pb.set_position(trainer.step);
-        pb.set_message(format!("loss {:.4} (rgb {:.4} eik {:.4} mask {:.4}) psnr {:.1} {:.2} it/s", s.loss, s.rgb, s.eikonal, s.mask, s.psnr, its));
+        let smooth = if cfg.smoothness_weight > 0.0 { format!(" smooth {:.4}", s.smoothness) } else { String::new() };
+        pb.set_message(format!("loss {:.4} (rgb {:.4} eik {:.4} mask {:.4}{smooth}) psnr {:.1} {:.2} it/s", s.loss, s.rgb, s.eikonal, s.mask, s.psnr, its));
         ctx.emit("progress", serde_json::json!({ "stage": "geometry", "iterations": cfg.iterations, "it_per_s": its, "skipped": trainer.skipped, "stats": s }));
         last = s;
         let interrupted = stop.load(Ordering::SeqCst);
@@ -1020,5 +1027,13 @@ mod tests {
         assert_eq!(covered_psnr(0.0, 0.0), 0.0);
         // Mean squared error 0.01 over three channel samples: 20 dB.
         assert!((covered_psnr(0.03, 3.0) - 20.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn a_curve_resumed_from_before_a_new_column_keeps_every_line_as_wide_as_its_header() {
+        let dir = tempfile::tempdir().unwrap();
+        let p = dir.path().join("c.csv");
+        super::write_curve(&p, "step,loss,new", &["1,0.5".to_string(), "2,0.4,0.1".to_string()]).unwrap();
+        assert_eq!(std::fs::read_to_string(&p).unwrap(), "step,loss,new\n1,0.5,\n2,0.4,0.1\n");
     }
 }
