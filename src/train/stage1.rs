@@ -334,7 +334,9 @@ impl Stage1Config {
             // 27.89 / 26.78 -> 27.68 / 26.47 -> 27.60 / 26.34 dB as rendered (29.53 / 28.66 ->
             // 29.70 / 29.01 -> 29.58 / 28.72 after one scale per channel), roughness MSE 0.034 ->
             // 0.032 -> 0.041; glossy (0.05) normal error 5.61 -> 5.02 degrees, albedo 22.68 ->
-            // 22.89 dB, relit 26.85 / 21.06 -> 27.04 / 21.22 dB. Geometry, `bench train --variant
+            // 22.89 dB, relit 26.85 / 21.06 -> 27.04 / 21.22 dB. Stage 2 at seed 1 on the same
+            // stage-1 runs, 0 -> 0.05: bowl albedo 17.27 -> 18.37 dB, relit 18.37 / 22.01 -> 19.59 /
+            // 22.93 dB; example albedo 27.67 -> 27.53 dB (flat within seeds). Geometry, `bench train --variant
             // fast-refined-hull --set smoothness_weight=W` side by side, 0 -> 0.05, field Chamfer /
             // NC, shipped mesh Chamfer / face NC / triangles: example 0.169% / 0.9839, 0.173% /
             // 0.9805 / 3700 -> 0.172% / 0.9852, 0.179% / 0.9813 / 3184; bowl 1.363% / 0.9202,
