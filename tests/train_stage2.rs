@@ -118,6 +118,42 @@ fn whole_loss_gradient_matches_central_differences_with_indirect() {
     old.occluder_reflectance = false;
     assert_eq!(old.indirect_mlp().out_dim, old.lobes);
     check_config(old);
+    // The amplitudes stored as logs (`log_amplitude`).
+    let mut log = tiny(IndirectMode::Ours, DecoderMode::Separate);
+    log.log_amplitude = true;
+    check_config(log);
+}
+
+#[test]
+fn light_amplitudes_stored_as_logs_read_back_and_runs_without_the_field_read_linear() {
+    let mut cfg = tiny(IndirectMode::Ours, DecoderMode::Separate);
+    assert!(!cfg.log_amplitude, "linear amplitudes by default");
+    cfg.log_amplitude = true;
+    let mut m = Stage2Model::new(&cfg).unwrap();
+    let mut lobes = m.lobes();
+    // A sun-like lobe thousands of times brighter than the others, and a dark channel.
+    lobes[1].mu = [3000.0, 2500.0, 0.0];
+    lobes[1].lambda = 2000.0;
+    m.set_light(&lobes).unwrap();
+    assert!((m.light[7 + 4] - 3000f32.ln()).abs() < 1e-6 && m.light[7 + 6] == -40.0, "{:?}", &m.light[7..14]);
+    let back = m.lobes();
+    assert!((back[1].mu[0] / 3000.0 - 1.0).abs() < 1e-5 && (back[1].mu[1] / 2500.0 - 1.0).abs() < 1e-5 && back[1].mu[2] < 1e-15, "{:?}", back[1]);
+    assert!((back[1].lambda / 2000.0 - 1.0).abs() < 1e-5);
+    // The initial light has the same energy in either form.
+    let mut old = cfg.clone();
+    old.log_amplitude = false;
+    let lin = Stage2Model::new(&old).unwrap();
+    for (a, b) in lin.lobes().iter().zip(&Stage2Model::new(&cfg).unwrap().lobes()) {
+        assert!(a.mu.iter().zip(&b.mu).all(|(x, y)| (x / y - 1.0).abs() < 1e-5), "{a:?} vs {b:?}");
+    }
+    // A run written before the field existed reads μ raw.
+    let mut json = serde_json::to_value(&cfg).unwrap();
+    json.as_object_mut().unwrap().remove("log_amplitude");
+    let read: Stage2Config = serde_json::from_value(json).unwrap();
+    assert!(!read.log_amplitude);
+    // A negative amplitude is refused.
+    lobes[0].mu[0] = -1.0;
+    assert!(m.set_light(&lobes).is_err());
 }
 
 #[test]
@@ -215,13 +251,16 @@ fn idle_lobes_are_left_out_of_the_exported_environment() {
     assert!(m.idle_lobes().is_empty());
     assert_eq!(m.env_sgs(glam::DMat3::IDENTITY).lobes.len(), 5);
     // Lobe 2 goes dark: it is idle and not exported; the others keep their order.
-    m.light[2 * 7 + 4..2 * 7 + 7].fill(0.0);
+    let mut lobes = m.lobes();
+    lobes[2].mu = [0.0; 3];
+    m.set_light(&lobes).unwrap();
     assert_eq!(m.idle_lobes(), vec![2]);
     let env = m.env_sgs(glam::DMat3::IDENTITY);
     assert_eq!(env.lobes.len(), 4);
     assert_eq!(env.lobes[2].axis, m.axes()[3]);
     // An all-dark light keeps every lobe rather than exporting none.
-    m.light.chunks_exact_mut(7).for_each(|l| l[4..7].fill(0.0));
+    lobes.iter_mut().for_each(|l| l.mu = [0.0; 3]);
+    m.set_light(&lobes).unwrap();
     assert!(m.idle_lobes().is_empty());
 }
 
@@ -230,8 +269,15 @@ fn a_known_light_keeps_its_shape_and_learns_its_exposure() {
     // `light_fixed` (`--known-env`): photos rendered under light L, training started from 0.5·L
     // with the material frozen, so only the light can explain them: the axes and sharpness stay
     // bit for bit, every amplitude moves by one common factor, and that factor comes back to 2.
+    for log_amplitude in [true, false] {
+        known_light_run(log_amplitude);
+    }
+}
+
+fn known_light_run(log_amplitude: bool) {
     let b = Backend::cpu();
     let mut cfg = tiny(IndirectMode::Ours, DecoderMode::Separate);
+    cfg.log_amplitude = log_amplitude;
     cfg.light_fixed = true;
     cfg.lr_material = 0.0;
     cfg.lr_indirect = 0.0;
@@ -242,16 +288,17 @@ fn a_known_light_keeps_its_shape_and_learns_its_exposure() {
     batch.target = grads_on(&b, &truth, &batch).rgb.iter().map(|c| c.map(pii_bake::image_io::linear_to_srgb)).collect();
     let mut t = Stage2Trainer::new(&cfg).unwrap();
     t.model = truth.clone();
-    t.model.light.chunks_exact_mut(7).for_each(|l| l[4..7].iter_mut().for_each(|m| *m *= 0.5));
+    // Half the amplitudes, in the run's storage (set_light would also round the axes and ln λ).
+    t.model.light.chunks_exact_mut(7).for_each(|l| l[4..7].iter_mut().for_each(|m| if log_amplitude { *m += 0.5f32.ln() } else { *m *= 0.5 }));
     for step in 0..300 {
         let g = loss_and_grad(&b, &t.model, &batch, &weights(), step).unwrap();
         assert!(t.apply(g).unwrap().0);
     }
     assert!((t.exposure - 2.0).abs() < 0.04, "learnt exposure {}", t.exposure);
-    for (l, l0) in t.model.light.chunks_exact(7).zip(truth.light.chunks_exact(7)) {
+    for ((l, l0), (g, g0)) in t.model.light.chunks_exact(7).zip(truth.light.chunks_exact(7)).zip(t.model.lobes().iter().zip(&truth.lobes())) {
         assert_eq!(l[..4], l0[..4], "axis and sharpness are the map's");
-        for c in 4..7 {
-            assert!((l[c] / l0[c] - 1.0).abs() < 0.02, "amplitude {} of {} after learning the exposure", l[c], l0[c]);
+        for c in 0..3 {
+            assert!((g.mu[c] / g0.mu[c] - 1.0).abs() < 0.02, "amplitude {} of {} after learning the exposure", g.mu[c], g0.mu[c]);
         }
     }
 }
