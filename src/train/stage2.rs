@@ -309,8 +309,9 @@ impl Stage2Config {
             // 23.18 / 27.33, 21.36 / 0.080; spot 27.50 / 27.80, 26.67 -> 27.45 / 28.01, 26.97 ->
             // 24.55 / 25.80, 24.95: at 3 one seed of the spot's two fits its photos 2.6 dB worse
             // (held-out 28.23 -> 25.60 dB; seed 1: 28.40 dB, albedo 27.93), so 1, which no run
-            // fitted worse. Seed 1, 0.3 -> 1: bowl 18.37 / 19.59, 22.93 -> 19.63 / 20.68, 23.87; 0.3 -> 3:
-            // example 27.53 / 27.56, 26.31 -> 27.30 / 27.79, 26.63. Re-traced lobes: bowl 96 -> 225
+            // fitted worse. Seed 1, 0.3 -> 1: bowl 18.37 / 19.59, 22.93 -> 19.63 / 20.68, 23.87;
+            // example 27.53 / 27.56, 26.31 -> 27.53 / 27.73, 26.61 (-> 3: 27.30 / 27.79, 26.63); spot
+            // at 1: 27.69 / 27.68, 26.64 (held-out 28.45 dB). Re-traced lobes: bowl 96 -> 225
             // -> 323, example 101 -> 239 -> 354; the example's stage 2 alone on the 2-core box, 0.3
             // -> 3: 53.0 -> 60.9 s (re-tracing 4.0 -> 13.3 s).
             axis_lr_factor: 1.0,
