@@ -586,10 +586,11 @@ fn amplitude(raw: f32, log_amplitude: bool) -> f64 {
     }
 }
 
-/// The stored value of amplitude `mu` (≥ 0; a zero amplitude is stored as e^-40 in log form).
+/// The stored value of amplitude `mu` (≥ 0). In log form amplitudes below e^-40 (zero
+/// included: ln 0 = -inf) are stored as -40, so the stored value stays finite.
 fn amplitude_raw(mu: f64, log_amplitude: bool) -> f32 {
     if log_amplitude {
-        mu.max(1e-40).ln().max(-40.0) as f32
+        mu.ln().max(-40.0) as f32
     } else {
         mu as f32
     }
