@@ -157,6 +157,43 @@ fn light_amplitudes_stored_as_logs_read_back_and_runs_without_the_field_read_lin
 }
 
 #[test]
+fn unit_axes_stay_unit_length_turn_as_the_raw_ones_and_old_runs_read_false() {
+    let b = Backend::cpu();
+    let mut cfg = tiny(IndirectMode::Ours, DecoderMode::Separate);
+    assert!(cfg.unit_axes, "new runs keep their axes at unit length");
+    let axes = |t: &Stage2Trainer| t.model.light.chunks_exact(7).map(|l| [l[0], l[1], l[2]]).collect::<Vec<_>>();
+    let len = |a: &[f32; 3]| (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
+    let mut unit = Stage2Trainer::new(&cfg).unwrap();
+    cfg.unit_axes = false;
+    let mut raw = Stage2Trainer::new(&cfg).unwrap();
+    assert_eq!(unit.model.light, raw.model.light, "the same start");
+    // One step from the same state: the same directions, one of them rescaled.
+    for t in [&mut unit, &mut raw] {
+        let g = grads(&b, &t.model);
+        assert!(t.apply(g).unwrap().0);
+    }
+    for (u, r) in axes(&unit).iter().zip(&axes(&raw)) {
+        assert!((len(u) - 1.0).abs() < 1e-6, "unit axis of length {}", len(u));
+        let cos = (u[0] * r[0] + u[1] * r[1] + u[2] * r[2]) / len(r);
+        assert!(cos > 1.0 - 1e-6, "the same direction: cos {cos}");
+    }
+    // Over a run the raw axes lengthen; the unit ones stay unit.
+    for step in 0..40 {
+        for t in [&mut unit, &mut raw] {
+            let g = loss_and_grad(&b, &t.model, &batch(), &weights(), step).unwrap();
+            assert!(t.apply(g).unwrap().0);
+        }
+    }
+    assert!(axes(&unit).iter().all(|a| (len(a) - 1.0).abs() < 1e-5));
+    assert!(axes(&raw).iter().any(|a| len(a) > 1.0 + 1e-3), "{:?}", axes(&raw).iter().map(len).collect::<Vec<_>>());
+    // A run written before the field existed reads false.
+    let mut json = serde_json::to_value(&cfg).unwrap();
+    json.as_object_mut().unwrap().remove("unit_axes");
+    let read: Stage2Config = serde_json::from_value(json).unwrap();
+    assert!(!read.unit_axes);
+}
+
+#[test]
 fn a_dark_occluder_re_emits_less_than_the_dimmest_lobe() {
     let lobe = |mu: f64, z: f64| Sg { axis: [0.0, 0.0, z], lambda: 10.0, mu: [mu; 3] };
     let lobes = [lobe(2.0, 1.0), lobe(1.0, -1.0)];
