@@ -72,5 +72,21 @@ impl Context {
         pb.set_message(what.to_string());
         pb
     }
+
+    /// A spinner for work of unknown length (its message says what is happening; it ticks on
+    /// its own through long single calls); drawn only where [`Context::progress`] draws.
+    pub fn spinner(&self, what: &str) -> indicatif::ProgressBar {
+        use std::io::IsTerminal;
+        if self.json || self.quiet || !std::io::stderr().is_terminal() {
+            return indicatif::ProgressBar::hidden();
+        }
+        let pb = indicatif::ProgressBar::new_spinner();
+        if let Ok(style) = indicatif::ProgressStyle::with_template("{spinner} {msg} [{elapsed}]") {
+            pb.set_style(style);
+        }
+        pb.set_message(what.to_string());
+        pb.enable_steady_tick(std::time::Duration::from_millis(120));
+        pb
+    }
 }
 

@@ -152,6 +152,20 @@ fn unwritable_output_folder_is_a_clear_error_before_any_work() {
         err.to_string().contains("not-a-folder") && err.to_string().contains("output folder"),
         "{err}"
     );
+    // A failed export leaves no spinner running.
+    let pb = indicatif::ProgressBar::hidden();
+    let err = pii_bake::export::export_asset_with(
+        &Backend::cpu(),
+        &AnalyticSdf::new(AnalyticShape::Sphere),
+        &AnalyticMaterial::Checker,
+        None,
+        &ExportConfig::default(),
+        &out,
+        &pb,
+    )
+    .unwrap_err();
+    assert!(err.to_string().contains("not-a-folder"), "{err}");
+    assert!(pb.is_finished());
     let bad_name = ExportConfig {
         name: "Bad Name".into(),
         ..Default::default()

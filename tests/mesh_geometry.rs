@@ -6,7 +6,7 @@
 use pii_bake::backend::Backend;
 use pii_bake::mesh::field::{Aabb, AnalyticSdf, AnalyticShape};
 use pii_bake::mesh::grid::GridSpec;
-use pii_bake::mesh::{build_mesh, extract, sample_grid, topology, Mesh, MeshConfig, MeshError};
+use pii_bake::mesh::{build_mesh, build_mesh_with, extract, sample_grid, topology, Mesh, MeshConfig, MeshError};
 
 fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
@@ -214,6 +214,31 @@ fn bowl_keeps_the_ball_joined_and_drops_nothing() {
         "the ball is fused to the bowl by the smooth union"
     );
     assert_eq!(res.stats.holes_closed, 0);
+}
+
+#[test]
+fn meshing_says_what_it_did_and_ends_with_the_triangles_it_shipped() {
+    // Export's spinner reads these messages; the last one gives the figures of the mesh built.
+    let cfg = MeshConfig {
+        resolution: 64,
+        error_bound: None,
+        ..Default::default()
+    };
+    let sdf = AnalyticSdf::new(AnalyticShape::Bowl);
+    let pb = indicatif::ProgressBar::hidden();
+    let res = build_mesh_with(&Backend::cpu(), &sdf, &cfg, &pb).unwrap();
+    let s = &res.stats;
+    assert!(s.simplify_rounds > 0 && s.triangles < s.extracted_triangles, "{s:?}");
+    assert_eq!(
+        pb.message(),
+        format!(
+            "meshed: {} → {} triangles in {} simplification rounds",
+            s.extracted_triangles, s.triangles, s.simplify_rounds
+        )
+    );
+    // Watching changes nothing.
+    let plain = build_mesh(&Backend::cpu(), &sdf, &cfg).unwrap();
+    assert_eq!(plain.mesh, res.mesh);
 }
 
 #[test]

@@ -62,13 +62,14 @@ pub fn run(args: &ExportArgs, ctx: &Context) -> anyhow::Result<()> {
         ..Default::default()
     };
     let sdf = AnalyticSdf::new(analytic);
-    let report = super::export_asset(
+    let report = super::export_asset_with(
         &backend,
         &sdf,
         &args.material,
         env.as_ref(),
         &cfg,
         &args.asset.out,
+        &ctx.spinner("export"),
     )?;
     ctx.emit("export", serde_json::to_value(&report)?);
     ctx.say(format!(

@@ -228,6 +228,27 @@ pub fn export_asset(
     cfg: &ExportConfig,
     out_dir: &Path,
 ) -> Result<ExportReport, ExportError> {
+    export_asset_with(backend, sdf, material, env, cfg, out_dir, &indicatif::ProgressBar::hidden())
+}
+
+/// [`export_asset`], each phase (meshing and every simplification round, unwrapping, baking,
+/// writing) said in `progress`'s message; the bar is cleared when the export ends, however it ends.
+pub fn export_asset_with(
+    backend: &Backend,
+    sdf: &dyn SdfField,
+    material: &dyn MaterialField,
+    env: Option<&EnvSgs>,
+    cfg: &ExportConfig,
+    out_dir: &Path,
+    progress: &indicatif::ProgressBar,
+) -> Result<ExportReport, ExportError> {
+    struct ClearOnDrop<'a>(&'a indicatif::ProgressBar);
+    impl Drop for ClearOnDrop<'_> {
+        fn drop(&mut self) {
+            self.0.finish_and_clear();
+        }
+    }
+    let _clear = ClearOnDrop(progress);
     let t_total = Instant::now();
     if !valid_name(&cfg.name) {
         return Err(ExportError::Config(format!(
@@ -250,7 +271,7 @@ pub fn export_asset(
     check_writable(out_dir)?;
 
     // Geometry (scene units).
-    let built = mesh::build_mesh(backend, sdf, &cfg.mesh)?;
+    let built = mesh::build_mesh_with(backend, sdf, &cfg.mesh, progress)?;
     let (lo, hi) = built.mesh.bounds();
     let object_size = (0..3).map(|k| (hi[k] - lo[k]) as f64).fold(0.0, f64::max);
     let (texture_size, reason) = match cfg.texture {
@@ -268,11 +289,13 @@ pub fn export_asset(
         }
     };
 
+    progress.set_message(format!("export: unwrapping {} triangles", built.mesh.triangle_count()));
     let t = Instant::now();
     let padding = (texture_size / 128).max(2);
     let uvm = uv::unwrap(&built.mesh, &built.normals, texture_size, padding)?;
     let seconds_unwrap = t.elapsed().as_secs_f64();
 
+    progress.set_message(format!("export: baking {texture_size}² textures"));
     let baked = bake::bake(backend, sdf, material, &uvm, texture_size as usize)?;
 
     // Scene units → metres, origin at the bottom centre.
@@ -297,6 +320,7 @@ pub fn export_asset(
     };
 
     // Writers.
+    progress.set_message("export: writing the asset");
     let t = Instant::now();
     let n = baked.size;
     let albedo_flat: Vec<f32> = baked.albedo.iter().flatten().copied().collect();

@@ -972,6 +972,17 @@ pub fn simplify_sdf(
     mesh: &Mesh,
     cfg: &SdfSimplifyConfig,
 ) -> Result<(Mesh, SdfSimplifyReport), BackendError> {
+    simplify_sdf_with(backend, sdf, mesh, cfg, &indicatif::ProgressBar::hidden())
+}
+
+/// [`simplify_sdf`], each round's triangle count in `progress`'s message.
+pub fn simplify_sdf_with(
+    backend: &Backend,
+    sdf: &dyn SdfField,
+    mesh: &Mesh,
+    cfg: &SdfSimplifyConfig,
+    progress: &indicatif::ProgressBar,
+) -> Result<(Mesh, SdfSimplifyReport), BackendError> {
     use rayon::prelude::*;
 
     let bound = cfg.bound;
@@ -979,6 +990,7 @@ pub fn simplify_sdf(
     let nv = mesh.positions.len();
     let tris: Vec<[u32; 3]> = mesh.triangles().collect();
     let mut report = SdfSimplifyReport::default();
+    progress.set_message(format!("simplifying {} triangles: the field at their samples", tris.len()));
 
     // The field at every vertex, centroid and edge midpoint of the input (each edge once).
     // Edges are found as (min << 32 | max, slot 3t + k) sorted; an edge not shared by exactly two
@@ -1107,6 +1119,12 @@ pub fn simplify_sdf(
     let cost_limit = ((QEM_SLACK * bound as f64).powi(2)) as f32;
     for round in 1u32.. {
         alive.retain(|&t| !dec.tdead[t as usize]);
+        progress.set_message(format!(
+            "simplifying: {} → {} triangles (round {round}, {} collapses turned down by the field)",
+            dec.tris.len(),
+            alive.len(),
+            report.rejected
+        ));
         // Each candidate edge once (a < b along a triangle), never one at a locked vertex.
         let (tris, locked) = (&dec.tris, &dec.locked);
         let edges = move |t: u32| {
@@ -1341,10 +1359,23 @@ pub fn build_mesh(
     sdf: &dyn SdfField,
     cfg: &MeshConfig,
 ) -> Result<MeshResult, MeshError> {
+    build_mesh_with(backend, sdf, cfg, &indicatif::ProgressBar::hidden())
+}
+
+/// [`build_mesh`], saying what it is doing in `progress`'s message (the grid, the marching,
+/// each simplification round's triangle count; last: the triangles meshed and shipped).
+pub fn build_mesh_with(
+    backend: &Backend,
+    sdf: &dyn SdfField,
+    cfg: &MeshConfig,
+    progress: &indicatif::ProgressBar,
+) -> Result<MeshResult, MeshError> {
     if !(8..=2048).contains(&cfg.resolution) {
         return Err(MeshError::Resolution(cfg.resolution));
     }
     let grid = GridSpec::over(&sdf.bounds(), cfg.resolution);
+    let [gx, gy, gz] = grid.dims;
+    progress.set_message(format!("meshing: the field on a {gx}×{gy}×{gz} grid"));
     let mut stats = MeshStats {
         grid: Some(grid),
         ..Default::default()
@@ -1360,6 +1391,7 @@ pub fn build_mesh(
             sdf.name()
         );
     }
+    progress.set_message("meshing: marching tetrahedra");
     let t = Instant::now();
     let raw = extract::marching_tetrahedra(&grid, &values);
     drop(values);
@@ -1390,6 +1422,7 @@ pub fn build_mesh(
     // field-checked collapses start from the full mesh.
     let mut start = None;
     if mesh.triangle_count() >= PRESIMPLIFY_MIN_TRIANGLES {
+        progress.set_message(format!("simplifying {} triangles: meshoptimizer pre-pass", mesh.triangle_count()));
         let pre = simplify(&mesh, 0.25 * bound).0;
         if pre.triangle_count() * 2 <= mesh.triangle_count() && topology::check_closed(&pre).is_ok()
         {
@@ -1410,7 +1443,7 @@ pub fn build_mesh(
     // edge midpoints and centroids; faces along the gradient; normals within the tolerance):
     // meshoptimizer's quadrics alone cannot tell the two sides of a thin sheet apart, and its
     // collapses across one leave the measured deviation far above the bound (see simplify_sdf).
-    let (simplified, report) = simplify_sdf(
+    let (simplified, report) = simplify_sdf_with(
         backend,
         sdf,
         &from,
@@ -1418,6 +1451,7 @@ pub fn build_mesh(
             bound,
             normal_tolerance_deg: tol,
         },
+        progress,
     )?;
     let dev = surface_deviation(backend, sdf, &simplified)?;
     let input = report.input;
@@ -1479,6 +1513,10 @@ pub fn build_mesh(
     stats.vertices = mesh.positions.len();
     stats.watertight = topology::check_closed(&mesh).is_ok();
     let normals = sdf_normals(backend, sdf, &mesh.positions)?;
+    progress.set_message(format!(
+        "meshed: {} → {} triangles in {} simplification rounds",
+        stats.extracted_triangles, stats.triangles, stats.simplify_rounds
+    ));
     Ok(MeshResult {
         mesh,
         normals,

@@ -886,7 +886,7 @@ pub fn export_stage1(backend: &Backend, trainer: &Trainer, rs: &RunScene, asset:
     };
     let env = super::preview::uniform_environment();
     let t = Instant::now();
-    let report = crate::export::export_asset(backend, &sdf, &material, Some(&env), &ecfg, &asset.out)?;
+    let report = crate::export::export_asset_with(backend, &sdf, &material, Some(&env), &ecfg, &asset.out, &ctx.spinner("export"))?;
     ctx.say(format!(
         "export: {} triangles (error bound {:.4} normalised units, watertight {}), {} UV charts, {}² textures, files in {} [{:.2} s]",
         report.mesh.triangles,

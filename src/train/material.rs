@@ -760,7 +760,7 @@ pub fn export_stage2(backend: &Backend, s1: &Trainer, s2: &Stage2Trainer, rs: &R
     };
     let env = s2.model.env_sgs(rotation);
     let t = Instant::now();
-    let report = crate::export::export_asset(backend, &sdf, &material, Some(&env), &ecfg, &asset.out)?;
+    let report = crate::export::export_asset_with(backend, &sdf, &material, Some(&env), &ecfg, &asset.out, &ctx.spinner("export"))?;
     ctx.say(format!(
         "export: {} triangles (error bound {:.4} normalised units, watertight {}), {} UV charts, {}² albedo/roughness textures from the material field, learned environment ({} lobes), files in {} [{:.2} s]",
         report.mesh.triangles,

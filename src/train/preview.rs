@@ -493,7 +493,7 @@ pub fn run_preview(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
     };
     let env = uniform_environment();
     let t = Instant::now();
-    let report = crate::export::export_asset(&backend, &hull, &material, Some(&env), &cfg, &args.asset.out)?;
+    let report = crate::export::export_asset_with(&backend, &hull, &material, Some(&env), &cfg, &args.asset.out, &ctx.spinner("export"))?;
     let seconds_export = t.elapsed().as_secs_f64();
     ctx.say(format!(
         "export: {} triangles (error bound {:.4} normalised units, watertight {}), {} UV charts, {}² textures, files in {} [{:.2} s]",
