@@ -1,20 +1,11 @@
 //! Readers on the real data in shared/data: DTU scan 37 (IDR npz) and the NeRD Ethiopian head (LLFF).
 
-use std::path::PathBuf;
+mod common;
 
+use common::shared_data;
 use glam::DVec3;
 use pii_bake::scene::{load, normalise, Downscale, ReadOptions, Split};
 
-fn shared_data() -> PathBuf {
-    let p = std::env::var("PII_SHARED_DATA")
-        .map(PathBuf::from)
-        .unwrap_or_else(|_| PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data")));
-    if p.is_dir() {
-        p
-    } else {
-        PathBuf::from("/work/shared/data")
-    }
-}
 
 #[test]
 fn dtu_scan37_cameras_masks_and_unit_sphere() {

@@ -8,7 +8,7 @@ use std::path::Path;
 
 mod common;
 
-use common::{copy_dir, example, pii, text};
+use common::{copy_dir, example, pii, shared_data, text};
 
 fn stage1(run: &Path) {
     let ex = example();
@@ -558,4 +558,54 @@ fn under_auto_with_a_gpu_stage_two_times_both_backends_keeps_the_faster_and_a_re
     assert!(o.status.success(), "{}", text(&o));
     let sb = &report(&b)["step_backend"];
     assert!(sb["chosen"] == "wgpu" && sb["why"].as_str().unwrap().contains("--backend") && sb["seconds_per_step"].as_object().unwrap().is_empty(), "{sb}");
+}
+
+#[test]
+fn a_strongly_tinted_learnt_light_is_flagged_and_real_maps_are_not() {
+    use pii_bake::train::material::{tinted_light_flag, TINTED_LIGHT_ABOVE};
+    use pii_bake::train::stage2::{Stage2Config, Stage2Model};
+    // A model's per-channel energy sums its lobes' μ_c·∫G.
+    let mut cfg = Stage2Config::new(pii_bake::train::stage1::Preset::Fast, 1000);
+    cfg.lobes = 4;
+    let mut m = Stage2Model::new(&cfg).unwrap();
+    let mut lobes = m.lobes();
+    for l in &mut lobes {
+        l.mu = [1.38, 1.0, 0.32];
+        l.lambda = 10.0;
+    }
+    m.set_light(&lobes).unwrap();
+    let e = m.channel_energies();
+    let s = 4.0 * pii_bake::sg::shade::sg_integral(10.0f64);
+    for (c, want) in [1.38, 1.0, 0.32].iter().enumerate() {
+        assert!((e[c] / (want * s) - 1.0).abs() < 1e-4, "channel {c}: {e:?}");
+    }
+    // The Ethiopian head's learnt light (bronze) is flagged, with its ratios.
+    let flag = tinted_light_flag(e).expect("a 4.3x tint is flagged");
+    assert!(flag.contains("1.38 : 1 : 0.32") && flag.contains("metallic"), "{flag}");
+    // Every HDR map shipped in shared/data, energy per channel over the sphere, is not.
+    let dir = shared_data().join("envmaps");
+    let mut maps = 0;
+    for sub in ["blender_studiolights", "invrender"] {
+        for f in std::fs::read_dir(dir.join(sub)).unwrap() {
+            let path = f.unwrap().path();
+            if path.extension().and_then(|x| x.to_str()) != Some("exr") {
+                continue;
+            }
+            let map = pii_bake::sg::env::read_latlong_exr(&path).unwrap();
+            let mut e = [0.0f64; 3];
+            for (i, px) in map.rgb.chunks_exact(3).enumerate() {
+                let row = i / map.width;
+                let w = (std::f64::consts::PI * (row as f64 + 0.5) / map.height as f64).sin();
+                for c in 0..3 {
+                    e[c] += w * px[c] as f64;
+                }
+            }
+            let ratio = e.iter().cloned().fold(0.0, f64::max) / e.iter().cloned().fold(f64::INFINITY, f64::min);
+            assert!(ratio < TINTED_LIGHT_ABOVE && tinted_light_flag(e).is_none(), "{}: channels {ratio:.2}x apart", path.display());
+            maps += 1;
+        }
+    }
+    assert_eq!(maps, 11, "the eleven shipped maps");
+    // A dark or broken light is not a tint.
+    assert!(tinted_light_flag([0.0; 3]).is_none() && tinted_light_flag([1.0, f64::NAN, 0.1]).is_none());
 }

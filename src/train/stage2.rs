@@ -706,6 +706,14 @@ impl Stage2Model {
     }
 
     /// Each lobe's energy, `mean(μ)·∫G` over the sphere.
+    /// The light's energy per colour channel (each lobe's `μ_c·∫G`), idle lobes included.
+    pub fn channel_energies(&self) -> [f64; 3] {
+        self.lobes().iter().fold([0.0; 3], |e, l| {
+            let s = crate::sg::shade::sg_integral(l.lambda);
+            [0, 1, 2].map(|c| e[c] + l.mu[c] * s)
+        })
+    }
+
     pub fn lobe_energies(&self) -> Vec<f64> {
         self.lobes().iter().map(|l| (l.mu[0] + l.mu[1] + l.mu[2]) / 3.0 * crate::sg::shade::sg_integral(l.lambda)).collect()
     }

@@ -77,6 +77,19 @@ pub fn turn_camera(tf: &Path, view: &str, degrees: f64) {
     std::fs::write(tf, serde_json::to_vec_pretty(&j).unwrap()).unwrap();
 }
 
+/// The real test material (`PII_SHARED_DATA`, else `../shared/data` beside the repository, else
+/// `/work/shared/data`).
+pub fn shared_data() -> PathBuf {
+    let p = std::env::var("PII_SHARED_DATA")
+        .map(PathBuf::from)
+        .unwrap_or_else(|_| PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data")));
+    if p.is_dir() {
+        p
+    } else {
+        PathBuf::from("/work/shared/data")
+    }
+}
+
 /// The bundled example scene.
 pub fn example() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/example")
