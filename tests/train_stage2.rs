@@ -812,3 +812,25 @@ fn training_and_rendering_shade_alike_and_match_the_per_lobe_closed_form() {
         assert!(ps.spec.iter().chain(&ps.diff).any(|&x| x > 1e-3), "the case must light the point");
     }
 }
+
+#[test]
+fn the_material_grid_is_coarser_only_where_the_cached_points_would_spread_thin() {
+    use pii_bake::train::material::{material_grid_finest, MATERIAL_POINTS_PER_CELL};
+    use pii_bake::train::stage1::SceneSizes;
+    let sizes = |footprint: f32, finest: u32| SceneSizes { pixel_footprint: footprint, grid_finest: finest, grid_log2_table: 16, hull_resolution: 64, mesh_resolution: 96, train_views: 24, train_pixels: 960_000, held_out_views: 4 };
+    let points = 131_072;
+    // The bundled example (7701 masked pixels per view, footprint 0.0111) and make_scene.py's
+    // largest object (the bowl, 13918) keep half stage 1's 180 cells.
+    assert_eq!(material_grid_finest(&sizes(0.011_125_5, 180), points, 7701.0), 90);
+    assert_eq!(material_grid_finest(&sizes(0.011_125_5, 180), points, 13918.0), 90);
+    // The Ethiopian head (73.4k masked pixels per view, footprint 0.0039): about 120, not 255,
+    // and each finest cell then holds the floor's share of points (Cauchy's surface estimate).
+    let head = material_grid_finest(&sizes(0.003_918, 511), points, 73_400.0);
+    assert!((110..=130).contains(&head), "{head}");
+    let area = 4.0 * 73_400.0 * 0.003_918f64.powi(2);
+    let per_cell = points as f64 / (area * (head as f64).powi(2) / 4.0);
+    assert!(per_cell >= MATERIAL_POINTS_PER_CELL && per_cell < 1.2 * MATERIAL_POINTS_PER_CELL, "{per_cell}");
+    // Never below 32 cells, whatever the capture; never above half stage 1's.
+    assert_eq!(material_grid_finest(&sizes(0.0005, 1024), 1000, 1e7), 32);
+    assert_eq!(material_grid_finest(&sizes(0.05, 64), points, 10.0), 32);
+}

@@ -146,9 +146,33 @@ fn curve_line(s: &Stage2Stats, secs: f64) -> String {
 const CURVE2_HEADER: &str = "step,loss,rgb,smooth,kl,psnr,blocked,applied,seconds";
 
 /// The fast preset's material grid: half stage 1's finest resolution (at least 32 cells).
-pub fn material_grid_finest(sizes: &super::stage1::SceneSizes) -> u32 {
-    (sizes.grid_finest / 2).max(32)
+/// Masked training pixels per view.
+fn foreground_per_view(data: &TrainData) -> f64 {
+    data.foreground_pixels() as f64 / data.views.len().max(1) as f64
 }
+
+/// The fast preset's material grid: half stage 1's finest resolution, coarser where the cached
+/// points (`points`) would leave fewer than [`MATERIAL_POINTS_PER_CELL`] in a finest cell.
+pub fn material_grid_finest(sizes: &super::stage1::SceneSizes, points: usize, foreground_per_view: f64) -> u32 {
+    let half = (sizes.grid_finest / 2).max(32);
+    // Cauchy: a convex body's mean projected area is a quarter of its surface, so the surface is
+    // about A = 4·(foreground pixels per view)·footprint², its finest cells (side 2/f) number
+    // A·f²/4, and P cached points give 4P/(A·f²) = P/(fg·footprint²·f²) points per cell.
+    let fp = f64::from(sizes.pixel_footprint).max(1e-6);
+    let f = (points as f64 / (foreground_per_view.max(1.0) * MATERIAL_POINTS_PER_CELL)).sqrt() / fp;
+    (f.floor() as u32).clamp(32, half)
+}
+
+/// Fewest cached surface points per finest cell of the fast preset's material grid (see
+/// [`material_grid_finest`]). A real capture has far more pixels than the 2^17 points stage 2
+/// caches, so half stage 1's finest resolution left its cells with one or two points each, which
+/// each fitted on their own: a speckled albedo, roughness at 0 or 1 from point to point. The
+/// Ethiopian head (57 views, 15M pixels; `train --stage material`, held-out PSNR), finest 256
+/// (half stage 1's, ~2 points per cell) -> 128 (~7) -> 64 (~28): 21.03 -> 22.10 -> 22.25 dB. A
+/// floor, not a target: the bundled example (~17 points per cell at its 90 cells) loses texture
+/// coarser (albedo / relit as rendered, 90 -> 64: 27.35 / 27.85, 26.77 -> 24.60 / 25.68, 24.65 dB;
+/// -> 128: 27.15 / 27.65, 26.52), and at 8 every `make_scene.py` scene and the example keep 90.
+pub const MATERIAL_POINTS_PER_CELL: f64 = 8.0;
 
 /// Latent smoothness weight of the fast preset's material grid.
 pub const GRID_SMOOTH_WEIGHT: f32 = 1.0;
@@ -168,6 +192,7 @@ pub fn secondary_grid_nodes(sizes: &super::stage1::SceneSizes) -> usize {
 /// table size from them).
 pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &super::stage1::SceneSizes, opts: &MaterialOptions, seed: u64) -> anyhow::Result<(Stage2Config, serde_json::Value)> {
     let mut cfg = Stage2Config::new(preset, data.foreground_pixels());
+    let cached_points = cfg.points;
     if preset == Preset::Fast {
         // Measured on the example (1200 iterations, the appearance-grid stage 1): PE10 held-out
         // 19.05 dB with the roughness saturated at 1, albedo 20.26 dB, relit 22.62 dB, roughness
@@ -188,7 +213,8 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &s
         // bowl 17.22 / 20.13 -> 15.14 / 18.38; textureless bowl 21.67 / 23.38 -> 20.05 / 22.48 ->
         // 18.00 / 20.49. Plain differences (no mean) let the albedo fall to a third and the light
         // grow (example relit 13.8 dB at 0.3).
-        cfg = cfg.with_material_grid(material_grid_finest(sizes), sizes.grid_log2_table);
+        let finest = material_grid_finest(sizes, cfg.points, foreground_per_view(data));
+        cfg = cfg.with_material_grid(finest, sizes.grid_log2_table);
         cfg.smooth_weight = GRID_SMOOTH_WEIGHT;
     }
     cfg.secondary_grid_nodes = secondary_grid_nodes(sizes);
@@ -219,7 +245,7 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &s
         "lobes": if opts.lobes.is_some() { "forced by --lobes".to_string() } else { format!("{} preset default; lobes left with no energy are reported after training", preset.name()) },
         "decoder": if opts.decoder.is_some() { "forced by --decoder".to_string() } else if synthetic { "separate: a synthetic (transforms.json) scene".to_string() } else { "shared: a real capture (supplementary §5.2)".to_string() },
         "points": format!("min(preset cap, {} masked training pixels)", data.foreground_pixels()),
-        "material_encoding": if preset == Preset::Fast { format!("hash grid, finest {} cells (half stage 1's {}), 2^{} entries per level (stage 1's), latent smoothness {}", material_grid_finest(sizes), sizes.grid_finest, sizes.grid_log2_table, GRID_SMOOTH_WEIGHT) } else { format!("PE{} (the paper's)", cfg.pos_freqs) },
+        "material_encoding": if preset == Preset::Fast { format!("hash grid, finest {} cells (half stage 1's {} at most, and at least {MATERIAL_POINTS_PER_CELL} of the {} cached points per cell), 2^{} entries per level (stage 1's), latent smoothness {}", material_grid_finest(sizes, cached_points, foreground_per_view(data)), sizes.grid_finest, cached_points, sizes.grid_log2_table, GRID_SMOOTH_WEIGHT) } else { format!("PE{} (the paper's)", cfg.pos_freqs) },
     });
     Ok((cfg, why))
 }
