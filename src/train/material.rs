@@ -145,7 +145,6 @@ fn curve_line(s: &Stage2Stats, secs: f64) -> String {
 
 const CURVE2_HEADER: &str = "step,loss,rgb,smooth,kl,psnr,blocked,applied,seconds";
 
-/// The fast preset's material grid: half stage 1's finest resolution (at least 32 cells).
 /// Masked training pixels per view.
 fn foreground_per_view(data: &TrainData) -> f64 {
     data.foreground_pixels() as f64 / data.views.len().max(1) as f64
@@ -245,7 +244,7 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &s
         "lobes": if opts.lobes.is_some() { "forced by --lobes".to_string() } else { format!("{} preset default; lobes left with no energy are reported after training", preset.name()) },
         "decoder": if opts.decoder.is_some() { "forced by --decoder".to_string() } else if synthetic { "separate: a synthetic (transforms.json) scene".to_string() } else { "shared: a real capture (supplementary §5.2)".to_string() },
         "points": format!("min(preset cap, {} masked training pixels)", data.foreground_pixels()),
-        "material_encoding": if preset == Preset::Fast { format!("hash grid, finest {} cells (half stage 1's {} at most, and at least {MATERIAL_POINTS_PER_CELL} of the {} cached points per cell), 2^{} entries per level (stage 1's), latent smoothness {}", material_grid_finest(sizes, cached_points, foreground_per_view(data)), sizes.grid_finest, cached_points, sizes.grid_log2_table, GRID_SMOOTH_WEIGHT) } else { format!("PE{} (the paper's)", cfg.pos_freqs) },
+        "material_encoding": if preset == Preset::Fast { format!("hash grid, finest {} cells (half stage 1's {} at most, and at least {MATERIAL_POINTS_PER_CELL} of its {} cached points per cell), 2^{} entries per level (stage 1's), latent smoothness {}", material_grid_finest(sizes, cached_points, foreground_per_view(data)), sizes.grid_finest, cached_points, sizes.grid_log2_table, GRID_SMOOTH_WEIGHT) } else { format!("PE{} (the paper's)", cfg.pos_freqs) },
     });
     Ok((cfg, why))
 }
@@ -528,7 +527,8 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     let finite = trainer.model.light.iter().chain(&trainer.model.enc_params).all(|v| v.is_finite());
     let mut flags = Vec::new();
     if psnr < 20.0 {
-        flags.push(format!("held-out PSNR {psnr:.1} dB < 20 dB: light/material separation is weak (glossy or textureless object, few views?)"));
+        let which = if held.is_empty() { "training-view" } else { "held-out" };
+        flags.push(format!("{which} PSNR {psnr:.1} dB < 20 dB: light/material separation is weak (glossy or textureless object, few views?)"));
     }
     if trainer.skipped * 10 > trainer.step.max(1) {
         flags.push(format!("{} of {} steps skipped for non-finite gradients", trainer.skipped, trainer.step));
