@@ -15,7 +15,9 @@ lookup vector is rotated by +90 degrees about Blender Z to show the EXR the USD 
 
 Cameras JSON: [{"position": [x, y, z], "target": [x, y, z], "fov_deg": 40}, ...] in our world
 frame (metres, +Y up); optional per camera: "up" (the image's up direction, default world +Y),
-"width"/"height" (pixels; default --size square) with fov_deg then the horizontal field of view.
+"width"/"height" (pixels; default --size square) with fov_deg then the horizontal field of view,
+"shift_x"/"shift_y" (the principal point off centre as Blender's lens shift: the optical axis lands
+at pixel (w/2 - shift_x*s, h/2 + shift_y*s), s the larger side, y down).
 
 Reference images with an alpha channel (photos with their masks) are compared inside the mask:
 PSNR weighted by the reference's alpha, SSIM on both images composited over black by it.
@@ -95,6 +97,10 @@ def add_camera(scene, cam, size):
     scene.render.resolution_x, scene.render.resolution_y = w, h
     data.sensor_fit = "HORIZONTAL"
     data.angle_x = math.radians(cam.get("fov_deg", 40.0))
+    # Principal point off centre, in units of the image's larger side: the optical axis lands at
+    # pixel (w/2 - shift_x*s, h/2 + shift_y*s), y down.
+    data.shift_x = float(cam.get("shift_x", 0.0))
+    data.shift_y = float(cam.get("shift_y", 0.0))
     obj = bpy.data.objects.new("cam", data)
     scene.collection.objects.link(obj)
     pos = to_blender(cam["position"])

@@ -229,3 +229,48 @@ fn one_lobe_environment_lights_the_same_side_in_blender_and_usd() {
         );
     }
 }
+
+#[test]
+fn an_off_centre_principal_point_shifts_the_blender_image_as_the_photo_is_shifted() {
+    // Blender's lens shift carries a photo's principal point (DTU's sits pixels off centre): with
+    // shift (0.1, 0.05) on an 80×60 image, the optical axis lands at pixel (40 − 8, 30 + 4), so
+    // the shifted render is the centred one moved 8 px left and 4 px down (a lens shift is a pure
+    // translation of the image plane).
+    let dir = tempfile::tempdir().unwrap();
+    let asset = dir.path().join("asset");
+    let env = pii_bake::sg::env::EnvSgs {
+        lobes: vec![pii_bake::sg::env::SgLobe { axis: [1.0, 0.3, 0.2], sharpness: 20.0, amplitude: [8.0, 8.0, 8.0] }],
+    };
+    let cfg = ExportConfig {
+        name: "shifted".into(),
+        mesh: MeshConfig { resolution: 48, error_bound: None, ..Default::default() },
+        texture: TextureSize::Fixed(256),
+        env_width: 128,
+        ..Default::default()
+    };
+    let report = export_asset(&Backend::cpu(), &AnalyticSdf::new(AnalyticShape::Torus), &AnalyticMaterial::Checker, Some(&env), &cfg, &asset).unwrap();
+    let cy = report.bounds_m.1[1] * 0.5;
+    let cam = |sx: f64, sy: f64| serde_json::json!({ "position": [0.3, cy + 1.2, 3.0], "target": [0.0, cy, 0.0], "fov_deg": 40.0, "width": 80, "height": 60, "shift_x": sx, "shift_y": sy });
+    let cams_path = dir.path().join("cams.json");
+    std::fs::write(&cams_path, serde_json::json!([cam(0.0, 0.0), cam(0.1, 0.05)]).to_string()).unwrap();
+    let out = dir.path().join("renders");
+    blender_verify(&asset, &cams_path, &out, ["--samples", "16", "--skip-usd"]);
+    let load = |i: usize| image::open(out.join(format!("glb_cam{i}.png"))).unwrap().to_luma8();
+    let (centred, shifted) = (load(0), load(1));
+    assert_eq!(shifted.dimensions(), (80, 60));
+    // Mean |difference| over the overlap with shifted(x, y) compared against centred(x + dx, y + dy).
+    let diff = |dx: i32, dy: i32| {
+        let (mut sum, mut n) = (0.0f64, 0usize);
+        for y in 8..52i32 {
+            for x in 12..68i32 {
+                let a = shifted.get_pixel(x as u32, y as u32)[0] as f64;
+                let b = centred.get_pixel((x + dx) as u32, (y + dy) as u32)[0] as f64;
+                sum += (a - b).abs();
+                n += 1;
+            }
+        }
+        sum / n as f64
+    };
+    let (right, none, opposite) = (diff(8, -4), diff(0, 0), diff(-8, 4));
+    assert!(right * 2.0 < none && right * 2.0 < opposite, "mean |difference| moved as predicted {right:.2}, unmoved {none:.2}, moved the other way {opposite:.2}");
+}

@@ -63,6 +63,10 @@ pub fn camera_json(view: &View, frame: &AssetFrame) -> serde_json::Value {
     let target = frame.point(center + c.forward());
     let up_a = frame.rotation * c.up();
     let fov = c.fov_x();
+    // The principal point as Blender's lens shift (in units of the image's larger side; the
+    // optical axis lands at pixel (w/2 − shift_x·s, h/2 + shift_y·s)): DTU's sits tens of pixels
+    // off centre, and a centred Blender camera then scored the asset against shifted photos.
+    let s = c.width.max(c.height).max(1) as f64;
     serde_json::json!({
         "name": view.name,
         "position": pos.to_array(),
@@ -71,6 +75,8 @@ pub fn camera_json(view: &View, frame: &AssetFrame) -> serde_json::Value {
         "fov_deg": fov.to_degrees(),
         "width": c.width,
         "height": c.height,
+        "shift_x": (0.5 * c.width as f64 - c.cx) / s,
+        "shift_y": (c.cy - 0.5 * c.height as f64) / s,
     })
 }
 
