@@ -57,10 +57,15 @@ impl Context {
         }
     }
 
+    /// Whether progress is drawn: on a terminal, never with `--json`/`--quiet`.
+    fn draws_progress(&self) -> bool {
+        use std::io::IsTerminal;
+        !self.json && !self.quiet && std::io::stderr().is_terminal()
+    }
+
     /// A progress bar drawn only on a terminal and never with `--json`/`--quiet`.
     pub fn progress(&self, len: u64, what: &str) -> indicatif::ProgressBar {
-        use std::io::IsTerminal;
-        if self.json || self.quiet || !std::io::stderr().is_terminal() {
+        if !self.draws_progress() {
             return indicatif::ProgressBar::hidden();
         }
         let pb = indicatif::ProgressBar::new(len);
@@ -76,8 +81,7 @@ impl Context {
     /// A spinner for work of unknown length (its message says what is happening; it ticks on
     /// its own through long single calls); drawn only where [`Context::progress`] draws.
     pub fn spinner(&self, what: &str) -> indicatif::ProgressBar {
-        use std::io::IsTerminal;
-        if self.json || self.quiet || !std::io::stderr().is_terminal() {
+        if !self.draws_progress() {
             return indicatif::ProgressBar::hidden();
         }
         let pb = indicatif::ProgressBar::new_spinner();

@@ -592,14 +592,8 @@ fn a_strongly_tinted_learnt_light_is_flagged_and_real_maps_are_not() {
                 continue;
             }
             let map = pii_bake::sg::env::read_latlong_exr(&path).unwrap();
-            let mut e = [0.0f64; 3];
-            for (i, px) in map.rgb.chunks_exact(3).enumerate() {
-                let row = i / map.width;
-                let w = (std::f64::consts::PI * (row as f64 + 0.5) / map.height as f64).sin();
-                for c in 0..3 {
-                    e[c] += w * px[c] as f64;
-                }
-            }
+            // The solid-angle mean radiance per channel (the fit's energy target): energy / 4π.
+            let e = pii_bake::sg::fit::FitTarget::from_map(&map.rgb, map.width, map.height, pii_bake::sg::env::LatlongConvention::OpenExrUsd, 8).mean;
             let ratio = e.iter().cloned().fold(0.0, f64::max) / e.iter().cloned().fold(f64::INFINITY, f64::min);
             assert!(ratio < TINTED_LIGHT_ABOVE && tinted_light_flag(e).is_none(), "{}: channels {ratio:.2}x apart", path.display());
             maps += 1;

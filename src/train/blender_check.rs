@@ -16,9 +16,10 @@ use crate::scene::View;
 /// The render check, embedded so an installed binary needs no source tree.
 const SCRIPT: &str = include_str!("../../scripts/blender_verify.py");
 
-/// Options of the Blender check (flattened into `bake`).
+/// Cycles samples per pixel of the Blender check by default (see `BlenderCheckOptions`).
 const DEFAULT_BLENDER_SAMPLES: usize = 128;
 
+/// Options of the Blender check (flattened into `bake`).
 #[derive(clap::Args, Clone, Debug)]
 pub struct BlenderCheckOptions {
     /// Skip rendering the asset in Blender (Cycles) against held-out photos.
@@ -64,7 +65,7 @@ pub fn camera_json(view: &View, frame: &AssetFrame) -> serde_json::Value {
     let up_a = frame.rotation * c.up();
     let fov = c.fov_x();
     // The principal point as Blender's lens shift (in units of the image's larger side; the
-    // optical axis lands at pixel (w/2 − shift_x·s, h/2 + shift_y·s)): DTU's sits tens of pixels
+    // optical axis lands at pixel (w/2 − shift_x·s, h/2 + shift_y·s)): DTU scan37's sits 5–6 px
     // off centre, and a centred Blender camera then scored the asset against shifted photos.
     let s = c.width.max(c.height).max(1) as f64;
     serde_json::json!({

@@ -191,7 +191,8 @@ pub fn secondary_grid_nodes(sizes: &super::stage1::SceneSizes) -> usize {
 /// table size from them).
 pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &super::stage1::SceneSizes, opts: &MaterialOptions, seed: u64) -> anyhow::Result<(Stage2Config, serde_json::Value)> {
     let mut cfg = Stage2Config::new(preset, data.foreground_pixels());
-    let cached_points = cfg.points;
+    // The fast preset's material grid, chosen once for the config and its reason.
+    let (cached_points, finest) = (cfg.points, material_grid_finest(sizes, cfg.points, foreground_per_view(data)));
     if preset == Preset::Fast {
         // Measured on the example (1200 iterations, the appearance-grid stage 1): PE10 held-out
         // 19.05 dB with the roughness saturated at 1, albedo 20.26 dB, relit 22.62 dB, roughness
@@ -212,7 +213,6 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &s
         // bowl 17.22 / 20.13 -> 15.14 / 18.38; textureless bowl 21.67 / 23.38 -> 20.05 / 22.48 ->
         // 18.00 / 20.49. Plain differences (no mean) let the albedo fall to a third and the light
         // grow (example relit 13.8 dB at 0.3).
-        let finest = material_grid_finest(sizes, cfg.points, foreground_per_view(data));
         cfg = cfg.with_material_grid(finest, sizes.grid_log2_table);
         cfg.smooth_weight = GRID_SMOOTH_WEIGHT;
     }
@@ -244,7 +244,7 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &s
         "lobes": if opts.lobes.is_some() { "forced by --lobes".to_string() } else { format!("{} preset default; lobes left with no energy are reported after training", preset.name()) },
         "decoder": if opts.decoder.is_some() { "forced by --decoder".to_string() } else if synthetic { "separate: a synthetic (transforms.json) scene".to_string() } else { "shared: a real capture (supplementary §5.2)".to_string() },
         "points": format!("min(preset cap, {} masked training pixels)", data.foreground_pixels()),
-        "material_encoding": if preset == Preset::Fast { format!("hash grid, finest {} cells (half stage 1's {} at most, and at least {MATERIAL_POINTS_PER_CELL} of its {} cached points per cell), 2^{} entries per level (stage 1's), latent smoothness {}", material_grid_finest(sizes, cached_points, foreground_per_view(data)), sizes.grid_finest, cached_points, sizes.grid_log2_table, GRID_SMOOTH_WEIGHT) } else { format!("PE{} (the paper's)", cfg.pos_freqs) },
+        "material_encoding": if preset == Preset::Fast { format!("hash grid, finest {} cells (half stage 1's {} at most, and at least {MATERIAL_POINTS_PER_CELL} of its {} cached points per cell), 2^{} entries per level (stage 1's), latent smoothness {}", finest, sizes.grid_finest, cached_points, sizes.grid_log2_table, GRID_SMOOTH_WEIGHT) } else { format!("PE{} (the paper's)", cfg.pos_freqs) },
     });
     Ok((cfg, why))
 }

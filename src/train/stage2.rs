@@ -705,7 +705,6 @@ impl Stage2Model {
         self.light.chunks_exact(LIGHT_STRIDE).map(|l| normalize(f64x3([l[0], l[1], l[2]])).map(|v| v as f32)).collect()
     }
 
-    /// Each lobe's energy, `mean(μ)·∫G` over the sphere.
     /// The light's energy per colour channel (each lobe's `μ_c·∫G`), idle lobes included.
     pub fn channel_energies(&self) -> [f64; 3] {
         self.lobes().iter().fold([0.0; 3], |e, l| {
@@ -714,6 +713,7 @@ impl Stage2Model {
         })
     }
 
+    /// Each lobe's energy, `mean(μ)·∫G` over the sphere.
     pub fn lobe_energies(&self) -> Vec<f64> {
         self.lobes().iter().map(|l| (l.mu[0] + l.mu[1] + l.mu[2]) / 3.0 * crate::sg::shade::sg_integral(l.lambda)).collect()
     }
