@@ -218,3 +218,60 @@ fn cli_exports_a_test_pattern_and_rejects_bad_flags() {
         .assert()
         .code(2);
 }
+
+/// A checker whose light squares are metal (the learnt material's metallic channel, in a field
+/// the test controls).
+struct HalfMetal;
+
+impl pii_bake::mesh::field::MaterialField for HalfMetal {
+    fn name(&self) -> String {
+        "checker, metal where x > 0".into()
+    }
+    fn eval(&self, backend: &Backend, points: &[[f32; 3]], normals: &[[f32; 3]]) -> Result<pii_bake::mesh::field::MaterialSamples, pii_bake::backend::BackendError> {
+        let mut m = AnalyticMaterial::Checker.eval(backend, points, normals)?;
+        m.metallic = points.iter().map(|p| if p[0] > 0.0 { 1.0 } else { 0.0 }).collect();
+        Ok(m)
+    }
+    fn feature_size(&self) -> Option<f32> {
+        AnalyticMaterial::Checker.feature_size()
+    }
+}
+
+#[test]
+fn a_metallic_material_reaches_the_orm_texture_the_glb_and_the_usd() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("metal");
+    let cfg = ExportConfig {
+        name: "metal".into(),
+        mesh: MeshConfig { resolution: 48, error_bound: None, ..Default::default() },
+        texture: TextureSize::Fixed(128),
+        metres_per_unit: 0.25,
+        env_width: 64,
+        ..Default::default()
+    };
+    export_asset(&Backend::cpu(), &AnalyticSdf::new(AnalyticShape::Torus), &HalfMetal, None, &cfg, &out).unwrap();
+    let orm = image::open(out.join("textures/orm.png")).unwrap().to_rgb8();
+    let metal = orm.pixels().filter(|p| p[2] == 255).count() as f64 / orm.pixels().len() as f64;
+    let dielectric = orm.pixels().filter(|p| p[2] == 0).count() as f64 / orm.pixels().len() as f64;
+    assert!(metal > 0.2 && dielectric > 0.2 && metal + dielectric > 0.95, "ORM B: {metal:.2} metal, {dielectric:.2} dielectric");
+    // The .glb's material reads metallic from the texture (factor 1); its JSON chunk follows the
+    // 12-byte header and the chunk's 8-byte header.
+    let glb = std::fs::read(out.join("metal.glb")).unwrap();
+    let len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
+    let json: serde_json::Value = serde_json::from_slice(&glb[20..20 + len]).unwrap();
+    let pbr = &json["materials"][0]["pbrMetallicRoughness"];
+    assert_eq!(pbr["metallicFactor"].as_f64(), Some(1.0), "{pbr}");
+    assert!(pbr["metallicRoughnessTexture"].is_object());
+    let payload = std::fs::read_to_string(out.join("payload.usda")).unwrap();
+    assert!(payload.contains("inputs:metallic.connect = </metal/mtl/metal_mat/orm.outputs:b>") && payload.contains("float outputs:b"), "{payload}");
+    assert_gltf_valid(&[out.join("metal.glb")]);
+    assert_usd_valid(&[out.join("asset.usda")]);
+    // A dielectric field keeps factor 0 (and B = 0: `check_textures`).
+    let plain = dir.path().join("plain");
+    export_asset(&Backend::cpu(), &AnalyticSdf::new(AnalyticShape::Torus), &AnalyticMaterial::Checker, None, &ExportConfig { name: "plain".into(), ..cfg }, &plain).unwrap();
+    let glb = std::fs::read(plain.join("plain.glb")).unwrap();
+    let len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
+    let json: serde_json::Value = serde_json::from_slice(&glb[20..20 + len]).unwrap();
+    assert_eq!(json["materials"][0]["pbrMetallicRoughness"]["metallicFactor"].as_f64().unwrap_or(0.0), 0.0);
+    assert!(std::fs::read_to_string(plain.join("payload.usda")).unwrap().contains("float inputs:metallic = 0"));
+}

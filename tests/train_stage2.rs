@@ -124,6 +124,99 @@ fn whole_loss_gradient_matches_central_differences_with_indirect() {
     check_config(log);
 }
 
+/// `tiny` with the metallic channel, its output bias at 0 (m ≈ 0.5, where both its specular and
+/// diffuse paths carry weight) so the check sees its gradient at full size.
+fn tiny_metal(decoder: DecoderMode) -> Stage2Config {
+    let mut c = tiny(IndirectMode::Ours, decoder);
+    c.metallic = true;
+    c
+}
+
+fn half_metal(cfg: &Stage2Config) -> Stage2Model {
+    let mut m = Stage2Model::new(cfg).unwrap();
+    let i = m.decoders.iter().position(|(d, o)| (*o..*o + d.out_dim()).contains(&4)).unwrap();
+    let (d, o) = (&m.decoders[i].0, m.decoders[i].1);
+    let bias = d.layers.last().unwrap().b + 4 - o;
+    assert_eq!(m.dec_params[i][bias], pii_bake::train::stage2::METALLIC_INIT_BIAS, "a run starts nearly dielectric");
+    m.dec_params[i][bias] = 0.0;
+    m
+}
+
+#[test]
+fn metallic_gradient_matches_central_differences_and_old_runs_read_dielectric() {
+    let b = Backend::cpu();
+    for decoder in [DecoderMode::Separate, DecoderMode::Shared] {
+        let cfg = tiny_metal(decoder);
+        assert_eq!(cfg.material_channels(), 5);
+        let model = half_metal(&cfg);
+        let metal = model.material(&b, &batch().x).unwrap().metallic;
+        assert!(metal.iter().all(|&m| m > 0.2 && m < 0.8), "{metal:?}");
+        let g = grads(&b, &model);
+        check_group("light", &g.d_light, model.light.len(), &model, &|m, i, h| m.light[i] += h);
+        check_group("encoder", &g.d_enc, model.enc_params.len(), &model, &|m, i, h| m.enc_params[i] += h);
+        for d in 0..model.dec_params.len() {
+            check_group(&format!("decoder{d}"), &g.d_dec[d], model.dec_params[d].len(), &model, &|m, i, h| m.dec_params[d][i] += h);
+        }
+        check_group("indirect", &g.d_ind, model.ind_params.len(), &model, &|m, i, h| m.ind_params[i] += h);
+    }
+    // Off: four channels, metallic 0 everywhere; a run file without the field reads off.
+    let off = tiny(IndirectMode::Ours, DecoderMode::Shared);
+    assert_eq!(off.decoder_mlps()[0].0.out_dim, 4);
+    assert!(Stage2Model::new(&off).unwrap().material(&b, &batch().x).unwrap().metallic.iter().all(|&m| m == 0.0));
+    let mut v = serde_json::to_value(&off).unwrap();
+    v.as_object_mut().unwrap().remove("metallic");
+    assert!(!serde_json::from_value::<Stage2Config>(v).unwrap().metallic);
+}
+
+#[test]
+fn a_metal_tints_its_highlights_with_its_albedo_and_loses_its_diffuse() {
+    use pii_bake::sg::shade::F0;
+    use pii_bake::train::stage2::{shade_f64, PointShading};
+    let lobes = vec![Sg { axis: [0.2, 1.0, 0.3], lambda: 20.0, mu: [2.0, 2.0, 2.0] }, Sg { axis: [-0.5, 0.5, 0.1], lambda: 1.0, mu: [0.4, 0.4, 0.4] }];
+    let (n, v) = ([0.0, 1.0, 0.0], [0.3, 0.9, 0.2]);
+    let albedo = [0.9, 0.6, 0.2];
+    let rough = 0.3;
+    let (s0, d0) = shade_f64(albedo, rough, 0.0, n, v, &lobes);
+    let (s1, d1) = shade_f64(albedo, rough, 1.0, n, v, &lobes);
+    for c in 0..3 {
+        // A full metal: no diffuse; its specular scaled by albedo/F0 (a grey light: the highlight takes the albedo's colour).
+        assert_eq!(d1[c], 0.0);
+        assert!(s1[c] > s0[c] * 3.0, "channel {c}: {} vs {}", s1[c], s0[c]);
+    }
+    assert!(s1[0] > s1[1] && s1[1] > s1[2], "{s1:?}");
+    assert!(s0[0] == s0[1] && s0[1] == s0[2], "a dielectric's highlight is the light's colour: {s0:?}");
+    // Halfway: linear in m between the two.
+    let (sh, dh) = shade_f64(albedo, rough, 0.5, n, v, &lobes);
+    for c in 0..3 {
+        assert!((sh[c] - 0.5 * (s0[c] + s1[c])).abs() < 1e-12 && (dh[c] - 0.5 * d0[c]).abs() < 1e-12);
+    }
+    // The training's shading (duals) agrees and its metallic / albedo gradients are the
+    // central differences of the render.
+    let d_out = [0.7, -0.2, 0.4];
+    let m = 0.35;
+    let ps = PointShading::new(albedo, rough, m, n, v, &lobes);
+    let (ss, sd) = shade_f64(albedo, rough, m, n, v, &lobes);
+    for c in 0..3 {
+        assert!((ps.spec[c] - ss[c]).abs() < 1e-12 && (ps.diff[c] - sd[c]).abs() < 1e-12);
+    }
+    let (da, _, dm, _) = ps.grad(albedo, m, &lobes, d_out);
+    let f = |a: [f64; 3], m: f64| {
+        let (s, d) = shade_f64(a, rough, m, n, v, &lobes);
+        (0..3).map(|c| d_out[c] * (s[c] + d[c])).sum::<f64>()
+    };
+    let h = 1e-6;
+    let fd_m = (f(albedo, m + h) - f(albedo, m - h)) / (2.0 * h);
+    assert!((dm - fd_m).abs() <= 1e-6 * fd_m.abs().max(1.0), "d metallic {dm} vs {fd_m}");
+    for c in 0..3 {
+        let (mut p, mut q) = (albedo, albedo);
+        p[c] += h;
+        q[c] -= h;
+        let fd = (f(p, m) - f(q, m)) / (2.0 * h);
+        assert!((da[c] - fd).abs() <= 1e-6 * fd.abs().max(1.0), "d albedo {c}: {} vs {fd}", da[c]);
+    }
+    assert!(F0 < albedo[2], "the test's albedo is above F0 in every channel");
+}
+
 #[test]
 fn light_amplitudes_stored_as_logs_read_back_and_runs_without_the_field_read_linear() {
     let mut cfg = tiny(IndirectMode::Ours, DecoderMode::Separate);
@@ -250,11 +343,11 @@ fn constant_roughness_is_one_value_for_the_object() {
     let mut c = tiny(IndirectMode::None, DecoderMode::Separate);
     c.roughness = RoughnessMode::Constant;
     let m = Stage2Model::new(&c).unwrap();
-    let (_, rough) = m.material(&b, &batch().x).unwrap();
+    let rough = m.material(&b, &batch().x).unwrap().roughness;
     assert!(rough.iter().all(|&r| r == rough[0] && r > 0.0 && r < 1.0), "{rough:?}");
     let mut f = m.clone();
     f.cfg.roughness = RoughnessMode::Field;
-    let (_, varying) = f.material(&b, &batch().x).unwrap();
+    let varying = f.material(&b, &batch().x).unwrap().roughness;
     assert!(varying.iter().any(|&r| r != varying[0]), "the field varies: {varying:?}");
 }
 
@@ -273,7 +366,7 @@ fn a_low_roughness_still_learns() {
     let last_in = *tiny(IndirectMode::None, DecoderMode::Separate).decoder_widths.last().unwrap();
     p[n - 1 - last_in..n - 1].iter_mut().for_each(|w| *w *= 0.01);
     p[n - 1] = (0.01f32 / 0.99).ln();
-    let (_, rough) = m.material(&b, &batch().x).unwrap();
+    let rough = m.material(&b, &batch().x).unwrap().roughness;
     let r_min = pii_bake::sg::shade::R_MIN as f32;
     assert!(rough.iter().all(|&r| r > r_min && (r - (r_min + (1.0 - r_min) * 0.01)).abs() < 1e-3), "{rough:?}");
     let g = grads(&b, &m);
@@ -790,7 +883,7 @@ fn training_and_rendering_shade_alike_and_match_the_per_lobe_closed_form() {
     // Roughness below the clamp, mid and rough; a frontal and a grazing view.
     for (rough, v) in [(0.005, [0.3, 0.8, 0.2]), (0.35, [0.3, 0.8, 0.2]), (1.0, [0.9, 0.05, -0.4]), (0.6, [0.95, 0.02, 0.1])] {
         let albedo = [0.8, 0.45, 0.1];
-        let ps = PointShading::new(albedo, rough, n, v, &lobes);
+        let ps = PointShading::new(albedo, rough, 0.0, n, v, &lobes);
         // The training's sums (duals) against the renderer's (f64) and the per-lobe closed form:
         // the same formula, so they differ only by f64 rounding (a dual divides by multiplying).
         let s = Surface { albedo, roughness: rough, normal: n, view: v };
@@ -802,7 +895,7 @@ fn training_and_rendering_shade_alike_and_match_the_per_lobe_closed_form() {
                 diff[c] += df[c];
             }
         }
-        let (rs, rd) = shade_f64(albedo, rough, n, v, &lobes);
+        let (rs, rd) = shade_f64(albedo, rough, 0.0, n, v, &lobes);
         for (what, a, b) in [("training", ps.spec, ps.diff), ("rendering", rs, rd)] {
             for c in 0..3 {
                 assert!((a[c] - spec[c]).abs() <= 1e-12 * spec[c].abs().max(1e-3), "{what} spec {c} at R {rough}: {} vs {}", a[c], spec[c]);

@@ -19,6 +19,8 @@ pub struct BakedTextures {
     pub size: usize,
     pub albedo: Vec<[f32; 3]>,
     pub roughness: Vec<f32>,
+    /// Metallic, where the material field gives it (else None: a dielectric asset).
+    pub metallic: Option<Vec<f32>>,
     pub stats: BakeStats,
 }
 
@@ -233,7 +235,8 @@ pub fn dilate<T: Copy + Default>(
     }
 }
 
-/// Bake albedo and roughness of `material` over `mesh`'s atlas at `size`².
+/// Bake albedo, roughness (and metallic where the field gives it) of `material` over `mesh`'s
+/// atlas at `size`².
 pub fn bake(
     backend: &Backend,
     sdf: &dyn SdfField,
@@ -248,6 +251,7 @@ pub fn bake(
     const CHUNK: usize = 1 << 18;
     let mut albedo = vec![[0.0f32; 3]; size * size];
     let mut roughness = vec![0.0f32; size * size];
+    let mut metallic: Option<Vec<f32>> = None;
     let mut filled = vec![false; size * size];
     for start in (0..cov.texels.len()).step_by(CHUNK) {
         let end = (start + CHUNK).min(cov.texels.len());
@@ -259,23 +263,34 @@ pub fn bake(
             1,
         )?;
         let m = material.eval(backend, &cov.points[start..end], &cov.normals[start..end])?;
-        if m.albedo.len() != end - start || m.roughness.len() != end - start {
+        if m.albedo.len() != end - start
+            || m.roughness.len() != end - start
+            || !(m.metallic.is_empty() || m.metallic.len() == end - start)
+        {
             return Err(BackendError::Shape(format!(
-                "material field {} returned {} albedo / {} roughness values for {} points",
+                "material field {} returned {} albedo / {} roughness / {} metallic values for {} points",
                 material.name(),
                 m.albedo.len(),
                 m.roughness.len(),
+                m.metallic.len(),
                 end - start
             )));
+        }
+        if !m.metallic.is_empty() && metallic.is_none() {
+            metallic = Some(vec![0.0f32; size * size]);
         }
         for (k, &ti) in cov.texels[start..end].iter().enumerate() {
             let ti = ti as usize;
             let a = m.albedo[k];
             let r = m.roughness[k];
+            let mt = m.metallic.get(k).copied().unwrap_or(0.0);
             // A non-finite material value is treated as uncovered (filled by dilation).
-            if a.iter().all(|v| v.is_finite()) && r.is_finite() {
+            if a.iter().all(|v| v.is_finite()) && r.is_finite() && mt.is_finite() {
                 albedo[ti] = a.map(|v| v.clamp(0.0, 1.0));
                 roughness[ti] = r.clamp(0.0, 1.0);
+                if let Some(mm) = metallic.as_mut() {
+                    mm[ti] = mt.clamp(0.0, 1.0);
+                }
                 filled[ti] = true;
             }
         }
@@ -284,6 +299,7 @@ pub fn bake(
     let t = Instant::now();
     let covered = filled.iter().filter(|&&f| f).count();
     let mut filled2 = filled.clone();
+    let mut filled3 = filled.clone();
     let mean3 = |v: &[[f32; 3]]| {
         let n = v.len() as f32;
         let s = v
@@ -299,6 +315,9 @@ pub fn bake(
         |v: &[f32]| v.iter().sum::<f32>() / v.len() as f32,
         0.5,
     );
+    if let Some(mm) = metallic.as_mut() {
+        dilate(size, mm, &mut filled3, |v: &[f32]| v.iter().sum::<f32>() / v.len() as f32, 0.0);
+    }
     let seconds_dilate = t.elapsed().as_secs_f64();
     let stats = BakeStats {
         size,
@@ -312,6 +331,7 @@ pub fn bake(
         size,
         albedo,
         roughness,
+        metallic,
         stats,
     })
 }

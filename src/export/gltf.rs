@@ -1,5 +1,7 @@
 //! Binary glTF 2.0 (.glb) from gltf-json structs: one mesh, one metallic-roughness material with
-//! an sRGB baseColor PNG and a linear ORM PNG (R = 1, G = roughness, B = metallic = 0), embedded.
+//! an sRGB baseColor PNG and a linear ORM PNG (R = 1, G = roughness, B = metallic), embedded. The
+//! metallic factor is 1 where the material has a metallic channel (the texture's B then carries it),
+//! else 0 (B is 0).
 
 use std::collections::BTreeMap;
 
@@ -13,6 +15,7 @@ pub fn glb_bytes(
     geo: &AssetGeometry,
     albedo_png: &[u8],
     orm_png: &[u8],
+    metallic: bool,
     material_name: &str,
     asset_name: &str,
     provenance: &serde_json::Value,
@@ -149,7 +152,7 @@ pub fn glb_bytes(
         pbr_metallic_roughness: json::material::PbrMetallicRoughness {
             base_color_factor: json::material::PbrBaseColorFactor([1.0; 4]),
             base_color_texture: Some(info(albedo_tex)),
-            metallic_factor: json::material::StrengthFactor(0.0),
+            metallic_factor: json::material::StrengthFactor(if metallic { 1.0 } else { 0.0 }),
             roughness_factor: json::material::StrengthFactor(1.0),
             metallic_roughness_texture: Some(info(orm_tex)),
             extensions: None,

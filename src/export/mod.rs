@@ -3,7 +3,7 @@
 //!
 //! | file | what |
 //! | --- | --- |
-//! | `<name>.glb` | glTF 2.0, embedded sRGB albedo PNG + linear ORM PNG (G = roughness, B = 0) |
+//! | `<name>.glb` | glTF 2.0, embedded sRGB albedo PNG + linear ORM PNG (G = roughness, B = metallic) |
 //! | `asset.usda`, `payload.usda` | the USD component (see [`usd`]) |
 //! | `textures/albedo.png`, `textures/orm.png` | the textures USD references |
 //! | `lookdev.usda` | the asset under a DomeLight on `env.exr` |
@@ -324,10 +324,12 @@ pub fn export_asset_with(
     let t = Instant::now();
     let n = baked.size;
     let albedo_flat: Vec<f32> = baked.albedo.iter().flatten().copied().collect();
+    let metallic = baked.metallic.is_some();
     let orm_flat: Vec<f32> = baked
         .roughness
         .iter()
-        .flat_map(|&r| [1.0, r, 0.0])
+        .enumerate()
+        .flat_map(|(i, &r)| [1.0, r, baked.metallic.as_ref().map_or(0.0, |m| m[i])])
         .collect();
     let albedo_png = image_io::encode_png8(n, n, 3, &albedo_flat, true)
         .map_err(|e| DataError::new(out_dir, e))?;
@@ -369,6 +371,7 @@ pub fn export_asset_with(
         &geo,
         &albedo_png,
         &orm_png,
+        metallic,
         &material_name,
         &prim_name,
         &provenance,
@@ -378,7 +381,7 @@ pub fn export_asset_with(
     put(usd::ALBEDO, &albedo_png)?;
     put(usd::ORM, &orm_png)?;
     let thumb_usd = format!(".thumbs/256x256/{}.png", usd::ASSET);
-    let payload = usd::payload_layer(&prim_name, &material_name, &geo);
+    let payload = usd::payload_layer(&prim_name, &material_name, &geo, metallic);
     let asset = usd::asset_layer(&prim_name, env!("CARGO_PKG_VERSION"), &thumb_usd);
     put(usd::PAYLOAD, payload.as_bytes())?;
     put(usd::ASSET, asset.as_bytes())?;

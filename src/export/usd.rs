@@ -71,7 +71,7 @@ pub fn asset_layer(name: &str, version: &str, thumbnail: &str) -> String {
 }
 
 /// The payload layer: geometry and material.
-pub fn payload_layer(name: &str, material: &str, geo: &AssetGeometry) -> String {
+pub fn payload_layer(name: &str, material: &str, geo: &AssetGeometry, metallic: bool) -> String {
     let mut s = header(name, "pii-bake asset payload");
     let (lo, hi) = geo.bounds();
     // USD texture space has t = 1 - v relative to glTF (origin at the bottom left).
@@ -81,6 +81,12 @@ pub fn payload_layer(name: &str, material: &str, geo: &AssetGeometry) -> String 
         .map(|t| format!("({}, {})", t[0], 1.0 - t[1]))
         .collect();
     let counts = int_list(std::iter::repeat_n(3u32, geo.indices.len() / 3));
+    // The ORM texture's B carries metallic where the material has it (as the .glb's).
+    let metallic_input = if metallic {
+        format!("float inputs:metallic.connect = </{name}/mtl/{material}/orm.outputs:b>")
+    } else {
+        "float inputs:metallic = 0".to_string()
+    };
     let _ = write!(
         s,
         r#"def Xform "{name}"
@@ -117,7 +123,7 @@ pub fn payload_layer(name: &str, material: &str, geo: &AssetGeometry) -> String 
             {{
                 uniform token info:id = "UsdPreviewSurface"
                 color3f inputs:diffuseColor.connect = </{name}/mtl/{material}/albedo.outputs:rgb>
-                float inputs:metallic = 0
+                {metallic_input}
                 float inputs:roughness.connect = </{name}/mtl/{material}/orm.outputs:g>
                 int inputs:useSpecularWorkflow = 0
                 token outputs:surface
@@ -150,6 +156,7 @@ pub fn payload_layer(name: &str, material: &str, geo: &AssetGeometry) -> String 
                 token inputs:wrapS = "clamp"
                 token inputs:wrapT = "clamp"
                 float outputs:g
+                float outputs:b
             }}
         }}
     }}

@@ -82,6 +82,9 @@ pub struct MaterialSamples {
     pub albedo: Vec<[f32; 3]>,
     /// Perceptual roughness in [0, 1] (α = R²).
     pub roughness: Vec<f32>,
+    /// glTF metallic in [0, 1], one per point; empty for a dielectric-only field (no metallic
+    /// texture is baked and the asset's metallic factor is 0).
+    pub metallic: Vec<f32>,
 }
 
 /// A material field on the surface.
@@ -317,7 +320,7 @@ impl MaterialField for AnalyticMaterial {
             .iter()
             .map(|p| self.eval_point([p[0] as f64, p[1] as f64, p[2] as f64]))
             .unzip();
-        Ok(MaterialSamples { albedo, roughness })
+        Ok(MaterialSamples { albedo, roughness, metallic: Vec::new() })
     }
     fn feature_size(&self) -> Option<f32> {
         match self {

@@ -333,6 +333,9 @@ pub struct BrdfSg<S> {
     axis: V3<S>,
     lambda: S,
     amplitude: S,
+    /// The amplitude's derivative in F0 (Fresnel `F0 + (1 − F0)·f` is linear in F0): what a
+    /// metallic surface's `F0 = mix(0.04, albedo, m)` scales ([`BrdfSg::lobe_factors_f0`]).
+    amplitude_f0: S,
 }
 
 impl<S: Scalar> BrdfSg<S> {
@@ -350,14 +353,15 @@ impl<S: Scalar> BrdfSg<S> {
         let mu_d = inv_r4 * S::c(1.0 / PI);
         let h = normalize(add(w, v));
         let vh = dot(v, h).max_c(0.0);
-        let fresnel = S::c(F0) + S::c(1.0 - F0) * (-(S::c(5.55473) * vh + S::c(6.8316)) * vh).exp2();
+        let schlick = (-(S::c(5.55473) * vh + S::c(6.8316)) * vh).exp2();
+        let fresnel = S::c(F0) + S::c(1.0 - F0) * schlick;
         let d1 = dot(w, n).max_c(0.0);
         let d2 = vn;
         let k = (r + S::c(1.0)) * (r + S::c(1.0)) * S::c(0.125);
         let g1 = d1 / (d1 * (S::c(1.0) - k) + k + S::c(TINY));
         let g2 = d2 / (d2 * (S::c(1.0) - k) + k + S::c(TINY));
-        let moi = fresnel * g1 * g2 / (S::c(4.0) * d1 * d2 + S::c(TINY));
-        BrdfSg { n, axis: w, lambda: lam_w, amplitude: mu_d * moi }
+        let dg = mu_d * g1 * g2 / (S::c(4.0) * d1 * d2 + S::c(TINY));
+        BrdfSg { n, axis: w, lambda: lam_w, amplitude: fresnel * dg, amplitude_f0: (S::c(1.0) - schlick) * dg }
     }
 
     /// [`lobe_factors`] of a light lobe (axis need not be unit; λ floored at [`LAMBDA_MIN`]).
@@ -370,6 +374,18 @@ impl<S: Scalar> BrdfSg<S> {
         // Diffuse: the light cosine-weighted over the hemisphere (times a/π in the caller).
         let diff = cosine_hemisphere_unit(axis, lambda, self.n);
         (spec, diff)
+    }
+
+    /// [`Self::lobe_factors`] and the specular factor's derivative in F0, `(F_s, ∂F_s/∂F0, F_d)`:
+    /// with reflectance `F0'` instead of [`F0`] the specular factor is `F_s + (F0' − F0)·∂F_s/∂F0`
+    /// (exactly: the Fresnel term is linear in F0).
+    pub fn lobe_factors_f0(&self, axis: V3<S>, lambda: S) -> (S, S, S) {
+        let axis = normalize(axis);
+        let lambda = lambda.max_c(LAMBDA_MIN);
+        let (p_axis, p_lambda, e) = sg_product_shape(axis, lambda, self.axis, self.lambda);
+        let spec_unit = e * cosine_hemisphere_unit(p_axis, p_lambda, self.n);
+        let diff = cosine_hemisphere_unit(axis, lambda, self.n);
+        (self.amplitude * spec_unit, self.amplitude_f0 * spec_unit, diff)
     }
 }
 

@@ -836,7 +836,7 @@ impl MaterialField for RadiancePreview<'_> {
             let c = self.model.colour(backend, xc, dc)?;
             albedo.extend(c.into_iter().map(|c| c.map(|v| crate::image_io::srgb_to_linear(v.clamp(0.0, 1.0)))));
         }
-        Ok(MaterialSamples { albedo, roughness: vec![self.roughness; points.len()] })
+        Ok(MaterialSamples { albedo, roughness: vec![self.roughness; points.len()], metallic: Vec::new() })
     }
     fn feature_size(&self) -> Option<f32> {
         Some(self.feature)

@@ -14,7 +14,7 @@ use rayon::prelude::*;
 
 use super::cli::{covered_psnr, masked_srgb_error, read_curve, read_run_scene, subsampled_rays, train_views, training_progress, write_curve, RunScene, TrainedSdf};
 use super::stage1::{scene_key, Model as Stage1Model, Preset, TrainData, Trainer, CHECKPOINT};
-use super::stage2::{shade_f64, BoundaryMode, DecoderMode, IndirectMode, RoughnessMode, Stage2Config, Stage2Model, Stage2Stats, Stage2Trainer, SurfaceCache, CHECKPOINT2};
+use super::stage2::{shade_f64, Materials, BoundaryMode, DecoderMode, IndirectMode, RoughnessMode, Stage2Config, Stage2Model, Stage2Stats, Stage2Trainer, SurfaceCache, CHECKPOINT2};
 use crate::backend::{Backend, BackendError};
 use crate::context::Context;
 use crate::export::{AssetArgs, ExportConfig, ExportReport};
@@ -521,7 +521,10 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     }
     let psnr = covered_psnr(se, wsum);
     let idle = trainer.model.idle_lobes().len();
-    let (alb, rough) = trainer.model.material(backend, &cache.x[..cache.len().min(4096)])?;
+    let mats = trainer.model.material(backend, &cache.x[..cache.len().min(4096)])?;
+    let (alb, rough) = (&mats.albedo, &mats.roughness);
+    let mean_metal = mats.metallic.iter().map(|&m| m as f64).sum::<f64>() / mats.metallic.len().max(1) as f64;
+    let metal_fraction = mats.metallic.iter().filter(|&&m| m > 0.5).count() as f64 / mats.metallic.len().max(1) as f64;
     let mean_rough = rough.iter().map(|&r| r as f64).sum::<f64>() / rough.len().max(1) as f64;
     let mean_alb: Vec<f64> = (0..3).map(|c| alb.iter().map(|a| a[c] as f64).sum::<f64>() / alb.len().max(1) as f64).collect();
     let finite = trainer.model.light.iter().chain(&trainer.model.enc_params).all(|v| v.is_finite());
@@ -578,7 +581,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "gpu_kernels_per_step": per_step.kernels,
         "host_encoding_seconds_per_step": per_step.encoding_seconds,
         "training_thread_cpu_seconds_per_step": per_step.thread_cpu_seconds,
-        "material": { "mean_albedo": mean_alb, "mean_roughness": mean_rough },
+        "material": { "mean_albedo": mean_alb, "mean_roughness": mean_rough, "metallic": if cfg.metallic { serde_json::json!({ "mean": mean_metal, "fraction_above_half": metal_fraction }) } else { serde_json::Value::Null } },
         "photo_texture": texture,
         "environment": {
             "total_energy": trainer.model.lobe_energies().iter().sum::<f64>(),
@@ -628,6 +631,8 @@ pub struct RenderedView {
     pub rgb: Vec<[f32; 3]>,
     pub albedo: Vec<[f32; 3]>,
     pub roughness: Vec<f32>,
+    /// Metallic (0 where the model is dielectric).
+    pub metallic: Vec<f32>,
     /// The shading normal (the model's normalised frame), facing the camera.
     pub normal: Vec<[f32; 3]>,
 }
@@ -674,6 +679,7 @@ pub fn render_view_lit(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, m
     out.hit = vec![false; n];
     out.albedo = vec![[0.0; 3]; n];
     out.roughness = vec![0.0; n];
+    out.metallic = vec![0.0; n];
     out.normal = vec![[0.0; 3]; n];
     let mut rgbs = vec![vec![[0.0f32; 3]; n]; envs.len()];
     let f = sdf.sdf_batch(backend)?;
@@ -691,7 +697,7 @@ pub fn render_view_lit(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, m
                 c.n[i] = c.n[i].map(|v| -v);
             }
         }
-        let (albedo, rough) = model.material(backend, &c.x)?;
+        let mats = model.material(backend, &c.x)?;
         for (e, env) in envs.iter().enumerate() {
             let rgb = match env {
                 None => {
@@ -700,7 +706,7 @@ pub fn render_view_lit(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, m
                     let all: Vec<usize> = (0..c.len()).collect();
                     super::stage2::render_points(backend, model, &c.batch(&all, cfg.lobes))?
                 }
-                Some(lobes) => relight_points(backend, sdf, model, &c, &albedo, &rough, lobes)?,
+                Some(lobes) => relight_points(backend, sdf, model, &c, &mats, lobes)?,
             };
             for (k, &i) in idx.iter().enumerate() {
                 rgbs[e][start + i] = rgb[k];
@@ -709,8 +715,9 @@ pub fn render_view_lit(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, m
         for (k, &i) in idx.iter().enumerate() {
             let g = start + i;
             out.hit[g] = true;
-            out.albedo[g] = albedo[k];
-            out.roughness[g] = rough[k];
+            out.albedo[g] = mats.albedo[k];
+            out.roughness[g] = mats.roughness[k];
+            out.metallic[g] = mats.metallic[k];
             out.normal[g] = c.n[k];
         }
     }
@@ -720,8 +727,7 @@ pub fn render_view_lit(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, m
 /// Shade points under another environment: direct light from its lobes; a lobe blocked by the
 /// object is replaced by one-bounce light, the radiance the hit point x' (its learned material,
 /// lit by the same environment, unoccluded) sends back toward x, spread over the lobe's extent.
-#[allow(clippy::too_many_arguments)]
-fn relight_points(backend: &Backend, sdf: &Stage1Model, model: &Stage2Model, c: &SurfaceCache, albedo: &[[f32; 3]], rough: &[f32], lobes: &[Sg<f64>]) -> Result<Vec<[f32; 3]>, BackendError> {
+fn relight_points(backend: &Backend, sdf: &Stage1Model, model: &Stage2Model, c: &SurfaceCache, mats: &Materials, lobes: &[Sg<f64>]) -> Result<Vec<[f32; 3]>, BackendError> {
     let cfg = &model.cfg;
     let grid = super::stage2::secondary_grid(backend, sdf, cfg)?;
     let (mut hx, mut owner) = (Vec::new(), Vec::new());
@@ -735,13 +741,14 @@ fn relight_points(backend: &Backend, sdf: &Stage1Model, model: &Stage2Model, c: 
         }
     }
     let hn = super::stage2::normals_at(backend, sdf, &hx, super::stage2::normal_step(sdf, cfg))?;
-    let (ha, hr) = model.material(backend, &hx)?;
+    let hm = model.material(backend, &hx)?;
     let bounce: Vec<[f32; 3]> = (0..hx.len())
         .into_par_iter()
         .map(|h| {
             let j = owner[h].1;
             let v = super::stage2::unit_f32(lobes[j].axis).map(|x| -x as f64);
-            let (sp, df) = shade_f64(ha[h].map(f64::from), hr[h] as f64, hn[h].map(f64::from), v, lobes);
+            let (a, r, m) = hm.at(h);
+            let (sp, df) = shade_f64(a, r, m, hn[h].map(f64::from), v, lobes);
             [0, 1, 2].map(|ch| (sp[ch].max(0.0) + df[ch].max(0.0)) as f32)
         })
         .collect();
@@ -756,7 +763,8 @@ fn relight_points(backend: &Backend, sdf: &Stage1Model, model: &Stage2Model, c: 
             for &(j, l) in &blocked[i] {
                 li[j] = Sg { axis: lobes[j].axis, lambda: lobes[j].lambda, mu: l.map(f64::from) };
             }
-            let (sp, df) = shade_f64(albedo[i].map(f64::from), rough[i] as f64, c.n[i].map(f64::from), c.v[i].map(f64::from), &li);
+            let (a, r, m) = mats.at(i);
+            let (sp, df) = shade_f64(a, r, m, c.n[i].map(f64::from), c.v[i].map(f64::from), &li);
             [0, 1, 2].map(|ch| (sp[ch].max(0.0) + df[ch].max(0.0)) as f32)
         })
         .collect())
@@ -779,8 +787,9 @@ impl MaterialField for LearnedMaterial<'_> {
     fn eval(&self, backend: &Backend, points: &[[f32; 3]], _normals: &[[f32; 3]]) -> Result<MaterialSamples, BackendError> {
         let rt = self.rotation.transpose();
         let x: Vec<[f32; 3]> = points.iter().map(|&q| (rt * glam::DVec3::from(q.map(f64::from))).as_vec3().to_array()).collect();
-        let (albedo, roughness) = self.model.material(backend, &x)?;
-        Ok(MaterialSamples { albedo, roughness })
+        let m = self.model.material(backend, &x)?;
+        let metallic = if self.model.cfg.metallic { m.metallic } else { Vec::new() };
+        Ok(MaterialSamples { albedo: m.albedo, roughness: m.roughness, metallic })
     }
     fn feature_size(&self) -> Option<f32> {
         Some(self.feature)

@@ -312,7 +312,7 @@ impl MaterialField for PhotoMaterial<'_> {
             .zip(normals)
             .map(|(&q, &nq)| self.colour(rot(&rt, q), rot(&rt, nq)).unwrap_or(self.fallback))
             .collect();
-        Ok(MaterialSamples { albedo, roughness: vec![self.roughness; points.len()] })
+        Ok(MaterialSamples { albedo, roughness: vec![self.roughness; points.len()], metallic: Vec::new() })
     }
     fn feature_size(&self) -> Option<f32> {
         Some(self.feature)

@@ -8,8 +8,9 @@
 //! for `eval --gt <scene> --pred <dir>`:
 //! - `test/<view>_relit_<map stem>.png` per map,
 //! - `test/<view>.png` (the learned light, i.e. novel-view synthesis), `test/<view>_albedo.png`
-//!   (sRGB), `test/<view>_roughness.png` (linear values) and `test/<view>_normal.png` (the
-//!   shading normal in the scene's world frame, n·0.5 + 0.5, linear),
+//!   (sRGB), `test/<view>_roughness.png` (linear values), `test/<view>_metallic.png` (linear,
+//!   where the model has a metallic channel) and `test/<view>_normal.png` (the shading normal in
+//!   the scene's world frame, n·0.5 + 0.5, linear),
 //! - `env.exr` (the learned environment, in `--convention`), `relight_report.json`.
 //!
 //! PNGs are RGBA: alpha = the rendered silhouette.
@@ -292,6 +293,9 @@ pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
         fp.write(&test.join(format!("{}.png", v.name)), |k| img.rgb[k], true)?;
         fp.write(&test.join(format!("{}_albedo.png", v.name)), |k| img.albedo[k], true)?;
         fp.write(&test.join(format!("{}_roughness.png", v.name)), |k| [img.roughness[k]; 3], false)?;
+        if s2.model.cfg.metallic {
+            fp.write(&test.join(format!("{}_metallic.png", v.name)), |k| [img.metallic[k]; 3], false)?;
+        }
         // The normalised frame is the scene's world frame translated and scaled: its normals are world normals.
         fp.write(&test.join(format!("{}_normal.png", v.name)), |k| img.normal[k].map(|c| c * 0.5 + 0.5), false)?;
         for ((stem, _, _), r) in maps.iter().zip(&renders[1..]) {
@@ -357,7 +361,7 @@ mod tests {
         let (rays, pixel_index) = crate::train::cli::subsampled_rays(&cam, 0);
         let tr = trace(&sphere, &rays, &tc).unwrap();
         let n = rays.len();
-        let img = RenderedView { width: cam.width, height: cam.height, pixel_index, hit: tr.hit.clone(), rgb: vec![[0.5; 3]; n], albedo: vec![[0.5; 3]; n], roughness: vec![0.5; n], normal: vec![[0.0, 0.0, 1.0]; n] };
+        let img = RenderedView { width: cam.width, height: cam.height, pixel_index, hit: tr.hit.clone(), rgb: vec![[0.5; 3]; n], albedo: vec![[0.5; 3]; n], roughness: vec![0.5; n], metallic: vec![0.0; n], normal: vec![[0.0, 0.0, 1.0]; n] };
         // The disc's area in pixels: the sphere's silhouette cone, half-angle asin(0.5 / 3).
         let r_px = 40.0 * (0.5f64 / 3.0).asin().tan();
         let area = std::f64::consts::PI * r_px * r_px;

@@ -55,7 +55,7 @@ use crate::nn::params::ParamStore;
 use crate::render::grid::SdfGrid;
 use crate::render::{trace, trace_secondary, Rays, TraceConfig};
 use crate::sg::env::{EnvSgs, SgLobe};
-use crate::sg::shade::{normalize, sg_eval, BrdfSg, Dual, Sg, LAMBDA_MIN, R_MIN};
+use crate::sg::shade::{normalize, sg_eval, BrdfSg, Dual, Sg, F0, LAMBDA_MIN, R_MIN};
 use crate::util::DataError;
 
 /// How light blocked by the object itself is modelled.
@@ -116,6 +116,14 @@ const ROUGHNESS_SPAN: f32 = (1.0 - R_MIN) as f32;
 pub fn roughness_from_decoder(y: f32) -> f32 {
     R_MIN as f32 + ROUGHNESS_SPAN * y
 }
+
+/// Material channels of the training's per-point buffers: albedo 0..3, roughness 3, metallic 4
+/// (0 where not modelled).
+const MAT: usize = 5;
+
+/// The metallic output's initial bias: `σ(−4) ≈ 0.018`, so a run starts (nearly) dielectric and
+/// a surface turns metallic only where the photos' highlights ask for it.
+pub const METALLIC_INIT_BIAS: f32 = -4.0;
 
 /// Where roughness comes from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, clap::ValueEnum, Serialize, Deserialize)]
@@ -261,6 +269,14 @@ pub struct Stage2Config {
     /// [`Stage2Config::new`]); run files without the field read false and resume as they ran.
     #[serde(default)]
     pub unit_axes: bool,
+    /// Model metallic surfaces: a fifth material channel `m` (sigmoid, written by the roughness
+    /// decoder, or the shared one), shading with `F0 = mix(0.04, albedo, m)` and the diffuse term
+    /// scaled by `1 − m` (glTF's metallic-roughness model, which the asset's ORM texture carries).
+    /// A dielectric-only model cannot make a metal's coloured highlights: the light takes their
+    /// colour and the albedo the opposite tint. Its output starts at `σ(METALLIC_INIT_BIAS)`.
+    /// Run files without the field read false (dielectric) and resume as they ran.
+    #[serde(default)]
+    pub metallic: bool,
 }
 
 impl Stage2Config {
@@ -380,6 +396,7 @@ impl Stage2Config {
             step_backend: None,
             log_amplitude: false,
             unit_axes: true,
+            metallic: false,
         }
     }
 
@@ -463,7 +480,8 @@ impl Stage2Config {
         }
     }
 
-    /// The decoders and the first material channel each writes (albedo 0..3, roughness 3).
+    /// The decoders and the first material channel each writes (albedo 0..3, roughness 3,
+    /// metallic 4 where [`Self::metallic`]).
     pub fn decoder_mlps(&self) -> Vec<(MlpConfig, usize)> {
         let dec = |out: usize| MlpConfig {
             in_dim: self.latent_dim,
@@ -474,10 +492,16 @@ impl Stage2Config {
             skip_layers: vec![],
             weight_norm: false,
         };
+        let metal = self.metallic as usize;
         match self.decoder {
-            DecoderMode::Separate => vec![(dec(3), 0), (dec(1), 3)],
-            DecoderMode::Shared => vec![(dec(4), 0)],
+            DecoderMode::Separate => vec![(dec(3), 0), (dec(1 + metal), 3)],
+            DecoderMode::Shared => vec![(dec(4 + metal), 0)],
         }
+    }
+
+    /// Material channels the decoders write: albedo (3), roughness, and metallic where modelled.
+    pub fn material_channels(&self) -> usize {
+        4 + self.metallic as usize
     }
 
     /// F_ind's reflectance outputs after its K weights: 3 with [`Stage2Config::occluder_reflectance`]
@@ -640,6 +664,24 @@ fn srgb_with_derivative(x: f64) -> (f64, f64) {
     }
 }
 
+/// The material field's values at points ([`Stage2Model::material`]).
+#[derive(Clone, Debug, Default)]
+pub struct Materials {
+    /// Linear, [0, 1].
+    pub albedo: Vec<[f32; 3]>,
+    /// Perceptual roughness, [`R_MIN`, 1].
+    pub roughness: Vec<f32>,
+    /// [0, 1]; 0 everywhere where the model is dielectric ([`Stage2Config::metallic`] off).
+    pub metallic: Vec<f32>,
+}
+
+impl Materials {
+    /// Point `i`'s `(albedo, roughness, metallic)` in f64 (shading's precision).
+    pub fn at(&self, i: usize) -> ([f64; 3], f64, f64) {
+        (self.albedo[i].map(f64::from), self.roughness[i] as f64, self.metallic[i] as f64)
+    }
+}
+
 /// The stage-2 networks and light, parameters on the host.
 #[derive(Clone, Debug)]
 pub struct Stage2Model {
@@ -666,7 +708,15 @@ impl Stage2Model {
         let indirect = Mlp::new(cfg.indirect_mlp())?;
         let mut enc_params = mat_enc.init(cfg.seed.wrapping_add(100));
         enc_params.extend(encoder.init(Init::Default, cfg.seed.wrapping_add(101)));
-        let dec_params = decoders.iter().enumerate().map(|(i, (m, _))| m.init(Init::Default, cfg.seed.wrapping_add(202 + i as u64))).collect();
+        let mut dec_params: Vec<Vec<f32>> = decoders.iter().enumerate().map(|(i, (m, _))| m.init(Init::Default, cfg.seed.wrapping_add(202 + i as u64))).collect();
+        // The metallic column's output bias (the last layer's bias `4 − o`).
+        for ((m, o), p) in decoders.iter().zip(dec_params.iter_mut()) {
+            if cfg.metallic && (*o..*o + m.out_dim()).contains(&4) {
+                if let Some(last) = m.layers.last() {
+                    p[last.b + 4 - o] = METALLIC_INIT_BIAS;
+                }
+            }
+        }
         let ind_params = indirect.init(Init::Default, cfg.seed.wrapping_add(303));
         let light = init_light(cfg.lobes, cfg.seed, cfg.log_amplitude);
         Ok(Self { cfg: cfg.clone(), mat_enc, encoder, decoders, indirect, enc_params, dec_params, light, ind_params })
@@ -780,30 +830,33 @@ impl Stage2Model {
         Ok(Some((r, f)))
     }
 
-    /// Albedo (linear, [0, 1]) and roughness at points: forward only, in chunks.
-    pub fn material(&self, backend: &Backend, x: &[[f32; 3]]) -> Result<(Vec<[f32; 3]>, Vec<f32>), BackendError> {
+    /// Albedo (linear, [0, 1]), roughness and metallic (0 where not modelled) at points: forward
+    /// only, in chunks.
+    pub fn material(&self, backend: &Backend, x: &[[f32; 3]]) -> Result<Materials, BackendError> {
         let mut albedo = Vec::with_capacity(x.len());
         let mut rough = Vec::with_capacity(x.len());
+        let mut metal = Vec::with_capacity(x.len());
         let constant = self.constant_roughness(backend, false)?.map(|(r, _)| r);
         let enc_p = backend.upload(self.enc_split().1);
         let dec_p: Vec<_> = self.dec_params.iter().map(|p| backend.upload(p)).collect();
         for c in x.chunks(1 << 14) {
             let enc = self.encode_material(c);
             let z = backend.mlp_forward(&self.encoder, &enc_p, &backend.from_vec(enc), false)?;
-            let mut mat = vec![0.0f32; c.len() * 4];
+            let mut mat = vec![0.0f32; c.len() * MAT];
             for ((m, o), p) in self.decoders.iter().zip(&dec_p) {
                 let out = backend.to_vec(&backend.mlp_forward(m, p, &z.output, false)?.output)?;
                 let od = m.out_dim();
                 for i in 0..c.len() {
-                    mat[4 * i + o..4 * i + o + od].copy_from_slice(&out[od * i..od * (i + 1)]);
+                    mat[MAT * i + o..MAT * i + o + od].copy_from_slice(&out[od * i..od * (i + 1)]);
                 }
             }
-            for m in mat.chunks_exact(4) {
+            for m in mat.chunks_exact(MAT) {
                 albedo.push([m[0], m[1], m[2]]);
                 rough.push(constant.unwrap_or(roughness_from_decoder(m[3])));
+                metal.push(m[4]);
             }
         }
-        Ok((albedo, rough))
+        Ok(Materials { albedo, roughness: rough, metallic: metal })
     }
 
     fn indirect_input(&self, hx: &[[f32; 3]], hn: &[[f32; 3]]) -> Vec<f32> {
@@ -1037,18 +1090,26 @@ pub fn mii_fit(lobes: &[Sg<f64>], targets: &[([f32; 3], [f32; 3])], scale: f64) 
     (loss, g)
 }
 
+/// A metallic surface's per-channel weights: `(m·(a_c − F0), (1 − m)·a_c/π)`. The specular sum
+/// is `Σ μ_c·(F_s + ks_c·∂F_s/∂F0)` (reflectance `mix(F0, a, m)`), the diffuse `Σ μ_c·kd_c·F_d`.
+fn metal_weights(albedo: [f64; 3], metal: f64) -> ([f64; 3], [f64; 3]) {
+    (albedo.map(|a| metal * (a - F0)), albedo.map(|a| (1.0 - metal) * a * (1.0 / PI)))
+}
+
 /// Outgoing radiance (linear) at one point: the specular and diffuse sums of
 /// [`crate::sg::shade::lobe_contribution`] before their clamps, the BRDF's side formed once
-/// ([`BrdfSg`]).
-pub fn shade_f64(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>]) -> ([f64; 3], [f64; 3]) {
+/// ([`BrdfSg`]); with `metal` > 0 the reflectance is `mix(F0, albedo, metal)` and the diffuse
+/// term scaled by `1 − metal` ([`Stage2Config::metallic`]).
+pub fn shade_f64(albedo: [f64; 3], rough: f64, metal: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>]) -> ([f64; 3], [f64; 3]) {
     let brdf = BrdfSg::new(n, v, rough);
+    let (ks, kd) = metal_weights(albedo, metal);
     let mut spec = [0.0; 3];
     let mut diff = [0.0; 3];
     for l in lobes {
-        let (fs, fd) = brdf.lobe_factors(l.axis, l.lambda);
+        let (fs, fa, fd) = brdf.lobe_factors_f0(l.axis, l.lambda);
         for c in 0..3 {
-            spec[c] += l.mu[c] * fs;
-            diff[c] += l.mu[c] * (albedo[c] * (1.0 / PI)) * fd;
+            spec[c] += l.mu[c] * (fs + ks[c] * fa);
+            diff[c] += l.mu[c] * kd[c] * fd;
         }
     }
     (spec, diff)
@@ -1061,74 +1122,85 @@ pub fn shade_f64(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3], lobes: 
 pub struct PointShading {
     pub spec: [f64; 3],
     pub diff: [f64; 3],
-    factors: Vec<(Dual<5>, Dual<5>)>,
+    /// Per lobe `(F_s, ∂F_s/∂F0, F_d)` ([`BrdfSg::lobe_factors_f0`]).
+    factors: Vec<(Dual<5>, Dual<5>, Dual<5>)>,
 }
 
+/// A point's `PointShading::grad`: `(d albedo, d roughness, d metallic, per lobe [d axis (3), d λ, d μ (3)])`.
+pub type ShadingGrad = ([f64; 3], f64, f64, Vec<[f64; 7]>);
+
 impl PointShading {
-    pub fn new(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>]) -> Self {
+    pub fn new(albedo: [f64; 3], rough: f64, metal: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>]) -> Self {
         type D = Dual<5>;
         let cst = |x: f64| D { v: x, d: [0.0; 5] };
         let brdf = BrdfSg::new(n.map(cst), v.map(cst), D::var(rough, 0));
+        let (ks, kd) = metal_weights(albedo, metal);
         let mut out = Self { spec: [0.0; 3], diff: [0.0; 3], factors: Vec::with_capacity(lobes.len()) };
         for l in lobes {
             let axis = [D::var(l.axis[0], 1), D::var(l.axis[1], 2), D::var(l.axis[2], 3)];
-            let (fs, fd) = brdf.lobe_factors(axis, D::var(l.lambda, 4));
+            let (fs, fa, fd) = brdf.lobe_factors_f0(axis, D::var(l.lambda, 4));
             for c in 0..3 {
-                out.spec[c] += l.mu[c] * fs.v;
-                out.diff[c] += l.mu[c] * (albedo[c] * (1.0 / PI)) * fd.v;
+                out.spec[c] += l.mu[c] * (fs.v + ks[c] * fa.v);
+                out.diff[c] += l.mu[c] * kd[c] * fd.v;
             }
-            out.factors.push((fs, fd));
+            out.factors.push((fs, fa, fd));
         }
         out
     }
 
-    /// Gradient of `Σ_c d_out_c · L_c`: `(d albedo, d roughness, per lobe [d axis (3), d λ, d μ (3)])`.
-    /// A channel whose specular or diffuse sum is clamped passes no gradient through it.
-    pub fn grad(&self, albedo: [f64; 3], lobes: &[Sg<f64>], d_out: [f64; 3]) -> ([f64; 3], f64, Vec<[f64; 7]>) {
+    /// Gradient of `Σ_c d_out_c · L_c` ([`ShadingGrad`]) at the `albedo` and `metal` the shading
+    /// was formed with. A channel whose specular or diffuse sum is clamped passes no gradient
+    /// through it.
+    pub fn grad(&self, albedo: [f64; 3], metal: f64, lobes: &[Sg<f64>], d_out: [f64; 3]) -> ShadingGrad {
         let ws = [0, 1, 2].map(|c| if self.spec[c] > 0.0 { d_out[c] } else { 0.0 });
         let wd = [0, 1, 2].map(|c| if self.diff[c] > 0.0 { d_out[c] } else { 0.0 });
-        let kd = albedo.map(|a| a * (1.0 / PI));
+        let (ks, kd) = metal_weights(albedo, metal);
         let mut da = [0.0; 3];
-        let mut dr = 0.0;
+        let (mut dr, mut dm) = (0.0, 0.0);
         let mut dl = Vec::with_capacity(lobes.len());
-        for (l, (fs, fd)) in lobes.iter().zip(&self.factors) {
-            let (mut cs, mut cd) = (0.0, 0.0);
+        for (l, (fs, fa, fd)) in lobes.iter().zip(&self.factors) {
+            let (mut cs, mut ca, mut cd) = (0.0, 0.0, 0.0);
             let mut g = [0.0f64; 7];
             for c in 0..3 {
                 cs += ws[c] * l.mu[c];
+                ca += ws[c] * l.mu[c] * ks[c];
                 cd += wd[c] * l.mu[c] * kd[c];
-                g[4 + c] = ws[c] * fs.v + wd[c] * kd[c] * fd.v;
-                da[c] += wd[c] * l.mu[c] * (1.0 / PI) * fd.v;
+                g[4 + c] = ws[c] * (fs.v + ks[c] * fa.v) + wd[c] * kd[c] * fd.v;
+                da[c] += ws[c] * l.mu[c] * metal * fa.v + wd[c] * l.mu[c] * (1.0 - metal) * (1.0 / PI) * fd.v;
+                dm += ws[c] * l.mu[c] * (albedo[c] - F0) * fa.v - wd[c] * l.mu[c] * albedo[c] * (1.0 / PI) * fd.v;
             }
-            let d: [f64; 5] = std::array::from_fn(|i| cs * fs.d[i] + cd * fd.d[i]);
+            let d: [f64; 5] = std::array::from_fn(|i| cs * fs.d[i] + ca * fa.d[i] + cd * fd.d[i]);
             dr += d[0];
             g[..4].copy_from_slice(&d[1..]);
             dl.push(g);
         }
-        (da, dr, dl)
+        (da, dr, dm, dl)
     }
 }
 
 /// Gradient of `Σ_c d_out_c · L_c` for one point with respect to the shading normal (the
 /// geometry refinement's path; masks as [`PointShading::grad`]).
-pub fn shade_normal_grad(albedo: [f64; 3], rough: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>], spec: [f64; 3], diff: [f64; 3], d_out: [f64; 3]) -> [f64; 3] {
+#[allow(clippy::too_many_arguments)]
+pub fn shade_normal_grad(albedo: [f64; 3], rough: f64, metal: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>], spec: [f64; 3], diff: [f64; 3], d_out: [f64; 3]) -> [f64; 3] {
     let ws = [0, 1, 2].map(|c| if spec[c] > 0.0 { d_out[c] } else { 0.0 });
     let wd = [0, 1, 2].map(|c| if diff[c] > 0.0 { d_out[c] } else { 0.0 });
     type D = Dual<3>;
     let cst = |x: f64| D { v: x, d: [0.0; 3] };
     // The BRDF's side once per point (as `PointShading`), the normal's tangents through it.
     let brdf = BrdfSg::new([D::var(n[0], 0), D::var(n[1], 1), D::var(n[2], 2)], v.map(cst), cst(rough));
+    let (ks, kd) = metal_weights(albedo, metal);
     let mut dn = [0.0; 3];
     for l in lobes {
-        let (fs, fd) = brdf.lobe_factors(l.axis.map(cst), cst(l.lambda));
-        // spec_c = μ_c·F_s, diff_c = μ_c·(a_c/π)·F_d.
-        let (mut cs, mut cd) = (0.0, 0.0);
+        let (fs, fa, fd) = brdf.lobe_factors_f0(l.axis.map(cst), cst(l.lambda));
+        // spec_c = μ_c·(F_s + ks_c·∂F_s/∂F0), diff_c = μ_c·kd_c·F_d.
+        let (mut cs, mut ca, mut cd) = (0.0, 0.0, 0.0);
         for c in 0..3 {
             cs += ws[c] * l.mu[c];
-            cd += wd[c] * l.mu[c] * (albedo[c] * (1.0 / PI));
+            ca += ws[c] * l.mu[c] * ks[c];
+            cd += wd[c] * l.mu[c] * kd[c];
         }
         for (a, d) in dn.iter_mut().enumerate() {
-            *d += cs * fs.d[a] + cd * fd.d[a];
+            *d += cs * fs.d[a] + ca * fa.d[a] + cd * fd.d[a];
         }
     }
     dn
@@ -1242,8 +1314,8 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
     let mut rng = crate::util::rng(noise_seed);
     let zp: Vec<f32> = z.iter().map(|&v| v + w.sigma * normal(&mut rng) as f32).collect();
     let zp_t = backend.from_vec(zp);
-    let mut mat = vec![0.0f32; b * 4];
-    let mut matp = vec![0.0f32; b * 4];
+    let mut mat = vec![0.0f32; b * MAT];
+    let mut matp = vec![0.0f32; b * MAT];
     let mut dec_fwd = Vec::new();
     for ((m, o), p) in model.decoders.iter().zip(&model.dec_params) {
         let pt = backend.upload(p);
@@ -1252,20 +1324,20 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
         let (o0, o1) = backend.to_vec2(&f0.output, &f1.output)?;
         let od = m.out_dim();
         for i in 0..b {
-            mat[4 * i + o..4 * i + o + od].copy_from_slice(&o0[od * i..od * (i + 1)]);
-            matp[4 * i + o..4 * i + o + od].copy_from_slice(&o1[od * i..od * (i + 1)]);
+            mat[MAT * i + o..MAT * i + o + od].copy_from_slice(&o0[od * i..od * (i + 1)]);
+            matp[MAT * i + o..MAT * i + o + od].copy_from_slice(&o1[od * i..od * (i + 1)]);
         }
         dec_fwd.push((pt, f0, f1));
     }
     for i in 0..b {
-        mat[4 * i + 3] = roughness_from_decoder(mat[4 * i + 3]);
-        matp[4 * i + 3] = roughness_from_decoder(matp[4 * i + 3]);
+        mat[MAT * i + 3] = roughness_from_decoder(mat[MAT * i + 3]);
+        matp[MAT * i + 3] = roughness_from_decoder(matp[MAT * i + 3]);
     }
     let constant = model.constant_roughness(backend, true)?;
     if let Some((r, _)) = &constant {
         for i in 0..b {
-            mat[4 * i + 3] = *r;
-            matp[4 * i + 3] = *r;
+            mat[MAT * i + 3] = *r;
+            matp[MAT * i + 3] = *r;
         }
     }
 
@@ -1316,6 +1388,7 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
         se: f64,
         da: [f64; 3],
         dr: f64,
+        dm: f64,
         dl: Vec<[f64; 7]>,
         fit: f64,
         d_fit: Vec<[f64; 7]>,
@@ -1326,10 +1399,10 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
         .into_par_iter()
         .map(|i| {
             let li = point_lobes(mode, &lobes, &slot_of[i], &mix, &mii_sgs[i], &vis_v);
-            let a = [mat[4 * i] as f64, mat[4 * i + 1] as f64, mat[4 * i + 2] as f64];
-            let r = mat[4 * i + 3] as f64;
+            let a = [mat[MAT * i] as f64, mat[MAT * i + 1] as f64, mat[MAT * i + 2] as f64];
+            let (r, m) = (mat[MAT * i + 3] as f64, mat[MAT * i + 4] as f64);
             let (n, v) = (f64x3(batch.n[i]), f64x3(batch.v[i]));
-            let shading = PointShading::new(a, r, n, v, &li);
+            let shading = PointShading::new(a, r, m, n, v, &li);
             let (spec, diff) = (shading.spec, shading.diff);
             let mut rgb = [0.0; 3];
             let mut d_out = [0.0; 3];
@@ -1342,13 +1415,13 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
                 se += e * e;
                 d_out[c] = e.signum() * inv3b * de;
             }
-            let (da, dr, dl) = shading.grad(a, &li, d_out);
-            let dn = if geometry { shade_normal_grad(a, r, n, v, &li, spec, diff, d_out) } else { [0.0; 3] };
+            let (da, dr, dm, dl) = shading.grad(a, m, &li, d_out);
+            let dn = if geometry { shade_normal_grad(a, r, m, n, v, &li, spec, diff, d_out) } else { [0.0; 3] };
             let (fit, d_fit) = match (mii_fwd.is_some(), batch.mii_targets.get(i)) {
                 (true, Some(t)) => mii_fit(&mii_sgs[i], t, fit_scale),
                 _ => (0.0, Vec::new()),
             };
-            PointOut { rgb, loss, se, da, dr, dl, fit, d_fit, dn }
+            PointOut { rgb, loss, se, da, dr, dm, dl, fit, d_fit, dn }
         })
         .collect();
 
@@ -1357,7 +1430,7 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
     let mut d_sig = vec![0.0f32; slots * (k + rk)];
     let mut loss_rgb = 0.0;
     let mut se = 0.0;
-    let mut d_mat = vec![0.0f32; b * 4];
+    let mut d_mat = vec![0.0f32; b * MAT];
     let mut d_mii = vec![0.0f32; mii_raw.len()];
     let mut d_mii_rgb = vec![0.0f32; if geometry { mii_raw.len() } else { 0 }];
     let mut fit = 0.0;
@@ -1384,9 +1457,12 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
         }
         se += p.se;
         for c in 0..3 {
-            d_mat[4 * i + c] = p.da[c] as f32;
+            d_mat[MAT * i + c] = p.da[c] as f32;
         }
-        d_mat[4 * i + 3] = p.dr as f32;
+        d_mat[MAT * i + 3] = p.dr as f32;
+        if model.cfg.metallic {
+            d_mat[MAT * i + 4] = p.dm as f32;
+        }
         let mut replaced = vec![usize::MAX; k];
         for &(kk, s) in &slot_of[i] {
             replaced[kk] = s;
@@ -1482,25 +1558,25 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
     };
 
     // Latent smoothness (L1 between the material of z and of z + ε), mean over channels.
-    let mut d_matp = vec![0.0f32; b * 4];
+    let mut d_matp = vec![0.0f32; b * MAT];
     let mut smooth = 0.0f64;
     for i in 0..b {
-        for c in 0..4 {
+        for c in 0..model.cfg.material_channels() {
             let nrm = if c < 3 { 3.0 * b as f64 } else { b as f64 };
-            let e = (matp[4 * i + c] - mat[4 * i + c]) as f64;
+            let e = (matp[MAT * i + c] - mat[MAT * i + c]) as f64;
             smooth += w.smooth as f64 * e.abs() / nrm;
             let g = (w.smooth as f64 * e.signum() / nrm) as f32;
-            d_matp[4 * i + c] = g;
-            d_mat[4 * i + c] -= g;
+            d_matp[MAT * i + c] = g;
+            d_mat[MAT * i + c] -= g;
         }
     }
     // A constant roughness takes every point's roughness gradient; the per-point paths get none.
     let d_const: f32 = if constant.is_some() {
         let mut sum = 0.0f64;
         for i in 0..b {
-            sum += d_mat[4 * i + 3] as f64 + d_matp[4 * i + 3] as f64;
-            d_mat[4 * i + 3] = 0.0;
-            d_matp[4 * i + 3] = 0.0;
+            sum += d_mat[MAT * i + 3] as f64 + d_matp[MAT * i + 3] as f64;
+            d_mat[MAT * i + 3] = 0.0;
+            d_matp[MAT * i + 3] = 0.0;
         }
         sum as f32 * ROUGHNESS_SPAN
     } else {
@@ -1508,15 +1584,15 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
     };
     // Through the roughness remap to the decoders' sigmoid outputs.
     for i in 0..b {
-        d_mat[4 * i + 3] *= ROUGHNESS_SPAN;
-        d_matp[4 * i + 3] *= ROUGHNESS_SPAN;
+        d_mat[MAT * i + 3] *= ROUGHNESS_SPAN;
+        d_matp[MAT * i + 3] *= ROUGHNESS_SPAN;
     }
     // Decoders backward on both paths; latent gradients sum.
     let mut dz = vec![0.0f32; b * ld];
     let mut d_dec = Vec::with_capacity(model.decoders.len());
     for ((m, o), (pt, f0, f1)) in model.decoders.iter().zip(&dec_fwd) {
         let od = m.out_dim();
-        let pick = |src: &[f32]| -> Vec<f32> { (0..b).flat_map(|i| src[4 * i + o..4 * i + o + od].to_vec()).collect() };
+        let pick = |src: &[f32]| -> Vec<f32> { (0..b).flat_map(|i| src[MAT * i + o..MAT * i + o + od].to_vec()).collect() };
         let g0 = backend.mlp_backward(m, pt, f0, &backend.from_vec(pick(&d_mat)))?;
         let g1 = backend.mlp_backward(m, pt, f1, &backend.from_vec(pick(&d_matp)))?;
         // Both paths' parameter and latent gradients with one wait.
@@ -1566,8 +1642,8 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
                 .flat_map(|i| (*o..*o + od).map(move |c| (i, c)))
                 .map(|(i, c)| match (c, &constant) {
                     (3, Some(_)) => 0.0,
-                    (3, None) => d_mat_rgb[4 * i + 3] * ROUGHNESS_SPAN,
-                    _ => d_mat_rgb[4 * i + c],
+                    (3, None) => d_mat_rgb[MAT * i + 3] * ROUGHNESS_SPAN,
+                    _ => d_mat_rgb[MAT * i + c],
                 })
                 .collect();
             let g = backend.to_vec(&backend.mlp_backward(m, pt, f0, &backend.from_vec(rows))?.d_input)?;
@@ -2185,7 +2261,7 @@ pub fn render_points(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
 }
 
 fn render_points_f64(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch) -> Result<Vec<[f64; 3]>, BackendError> {
-    let (albedo, rough) = model.material(backend, &batch.x)?;
+    let mat = model.material(backend, &batch.x)?;
     let lobes = model.lobes();
     let (mut hx, mut hn, mut owner) = (Vec::new(), Vec::new(), Vec::new());
     if model.cfg.indirect != IndirectMode::None {
@@ -2209,7 +2285,8 @@ fn render_points_f64(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
         .into_par_iter()
         .map(|i| {
             let li = point_lobes(model.cfg.indirect, &lobes, &per[i], &mix, &mii[i], &vis);
-            let (sp, df) = shade_f64(f64x3(albedo[i]), rough[i] as f64, f64x3(batch.n[i]), f64x3(batch.v[i]), &li);
+            let (a, r, m) = mat.at(i);
+            let (sp, df) = shade_f64(a, r, m, f64x3(batch.n[i]), f64x3(batch.v[i]), &li);
             [0, 1, 2].map(|c| sp[c].max(0.0) + df[c].max(0.0))
         })
         .collect())
