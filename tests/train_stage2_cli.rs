@@ -67,6 +67,9 @@ fn stage_two_resumes_exactly_exports_and_relights() {
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("material_report.json")).unwrap()).unwrap();
     assert_eq!(report["sizes"]["lobes"], 6);
     assert_eq!(report["config"]["decoder"], "separate", "a transforms.json scene is synthetic");
+    assert_eq!(report["config"]["metallic"], false, "a synthetic scene is dielectric under --metallic auto");
+    assert!(report["sizes"]["why"]["metallic"].as_str().unwrap().starts_with("off"), "{}", report["sizes"]["why"]);
+    assert!(report["material"]["metallic"].is_null());
     assert!(report["cache"]["points"].as_u64().unwrap() > 100);
     assert!(report["eval"]["psnr"].as_f64().unwrap().is_finite());
     // The fast preset's material grid: half stage 1's finest resolution, stage 1's table, and the
@@ -140,6 +143,42 @@ fn stage_two_resumes_exactly_exports_and_relights() {
     let o = pii(&["eval", "--gt", ex.to_str().unwrap(), "--pred", half.to_str().unwrap(), "--mesh-samples", "1000"]);
     assert!(!o.status.success());
     assert!(text(&o).contains("r_000_albedo.png") && text(&o).contains("render at its size or at 1/N of it"), "{}", text(&o));
+}
+
+#[test]
+fn a_metallic_run_trains_exports_its_metallic_texture_and_relights_its_view() {
+    use pii_bake::scene::Format;
+    use pii_bake::train::material::MetallicMode;
+    // `auto`: real captures get the channel, synthetic scenes do not.
+    for f in [Format::Llff, Format::Idr, Format::Colmap] {
+        assert!(MetallicMode::Auto.resolve(f), "{f:?}");
+    }
+    assert!(!MetallicMode::Auto.resolve(Format::Transforms) && MetallicMode::On.resolve(Format::Transforms) && !MetallicMode::Off.resolve(Format::Llff));
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    stage1(&run);
+    let o = stage2(&run, &["--material-iterations", "4", "--metallic", "on"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("material_report.json")).unwrap()).unwrap();
+    assert_eq!(report["config"]["metallic"], true);
+    assert!(report["sizes"]["why"]["metallic"].as_str().unwrap().contains("--metallic"), "{}", report["sizes"]["why"]);
+    let m = &report["material"]["metallic"];
+    assert!(m["mean"].as_f64().unwrap() > 0.0 && m["mean"].as_f64().unwrap() < 0.2, "starts nearly dielectric: {m}");
+    let asset = dir.path().join("asset");
+    let o = pii(&["export", "--run", run.to_str().unwrap(), "--out", asset.to_str().unwrap(), "--resolution", "40", "--texture", "64", "--name", "spot"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let glb = std::fs::read(asset.join("spot.glb")).unwrap();
+    let len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
+    let json: serde_json::Value = serde_json::from_slice(&glb[20..20 + len]).unwrap();
+    assert_eq!(json["materials"][0]["pbrMetallicRoughness"]["metallicFactor"].as_f64(), Some(1.0));
+    let orm = image::open(asset.join("textures/orm.png")).unwrap().to_rgb8();
+    assert!(orm.pixels().any(|p| p[2] > 0), "the metallic channel reaches ORM B");
+    common::assert_gltf_valid(&[asset.join("spot.glb")]);
+    let rel = dir.path().join("relit");
+    let env = example().join("env/sunset.exr");
+    let o = pii(&["relight", run.to_str().unwrap(), "--env", env.to_str().unwrap(), "--lobes", "8", "--max-views", "1", "--downscale", "4", "--out", rel.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(rel.join("test/r_000_metallic.png").is_file(), "{}", text(&o));
 }
 
 #[test]
@@ -580,8 +619,10 @@ fn a_strongly_tinted_learnt_light_is_flagged_and_real_maps_are_not() {
         assert!((e[c] / (want * s) - 1.0).abs() < 1e-4, "channel {c}: {e:?}");
     }
     // The Ethiopian head's learnt light (bronze) is flagged, with its ratios.
-    let flag = tinted_light_flag(e).expect("a 4.3x tint is flagged");
-    assert!(flag.contains("1.38 : 1 : 0.32") && flag.contains("metallic"), "{flag}");
+    let flag = tinted_light_flag(e, false).expect("a 4.3x tint is flagged");
+    assert!(flag.contains("1.38 : 1 : 0.32") && flag.contains("--metallic on"), "dielectric: {flag}");
+    let flag = tinted_light_flag(e, true).expect("flagged with metals modelled too");
+    assert!(flag.contains("1.38 : 1 : 0.32") && flag.contains("did not take") && !flag.contains("--metallic on"), "metallic: {flag}");
     // Every HDR map shipped in shared/data, energy per channel over the sphere, is not.
     let dir = shared_data().join("envmaps");
     let mut maps = 0;
@@ -595,11 +636,11 @@ fn a_strongly_tinted_learnt_light_is_flagged_and_real_maps_are_not() {
             // The solid-angle mean radiance per channel (the fit's energy target): energy / 4π.
             let e = pii_bake::sg::fit::FitTarget::from_map(&map.rgb, map.width, map.height, pii_bake::sg::env::LatlongConvention::OpenExrUsd, 8).mean;
             let ratio = e.iter().cloned().fold(0.0, f64::max) / e.iter().cloned().fold(f64::INFINITY, f64::min);
-            assert!(ratio < TINTED_LIGHT_ABOVE && tinted_light_flag(e).is_none(), "{}: channels {ratio:.2}x apart", path.display());
+            assert!(ratio < TINTED_LIGHT_ABOVE && tinted_light_flag(e, false).is_none(), "{}: channels {ratio:.2}x apart", path.display());
             maps += 1;
         }
     }
     assert_eq!(maps, 11, "the eleven shipped maps");
     // A dark or broken light is not a tint.
-    assert!(tinted_light_flag([0.0; 3]).is_none() && tinted_light_flag([1.0, f64::NAN, 0.1]).is_none());
+    assert!(tinted_light_flag([0.0; 3], false).is_none() && tinted_light_flag([1.0, f64::NAN, 0.1], true).is_none());
 }

@@ -45,6 +45,11 @@ pub struct MaterialOptions {
     /// the PhySG-like baseline's).
     #[arg(long, value_enum, default_value_t = RoughnessMode::Field)]
     pub roughness: RoughnessMode,
+    /// A metallic channel (glTF's metallic-roughness: a metal's highlights take its albedo's colour
+    /// and it has no diffuse): `auto` models it on real captures and not on synthetic
+    /// (transforms.json) scenes, `on` / `off` force it.
+    #[arg(long, value_enum, default_value_t = MetallicMode::Auto)]
+    pub metallic: MetallicMode,
     /// Boundary lights (secondary hits that graze the occluder): `flowing` passes their gradient to
     /// the light (ours), `detached` keeps them in the colour without gradient (the public code).
     #[arg(long, value_enum, default_value_t = BoundaryMode::Flowing)]
@@ -66,6 +71,29 @@ pub struct MaterialOptions {
     pub known_env: KnownEnv,
 }
 
+/// Whether stage 2 models metals ([`Stage2Config::metallic`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum MetallicMode {
+    /// On for real captures, off for synthetic scenes (see [`stage2_config`]).
+    Auto,
+    On,
+    Off,
+}
+
+impl MetallicMode {
+    /// Whether a scene in `format` gets the metallic channel. `auto`: real captures may hold metal
+    /// (the Ethiopian head is bronze: held-out PSNR 22.08 → 22.46 dB with it, its light's tint
+    /// 4.0× → 2.8×, its albedo no longer blue); `make_scene.py`'s synthetic scenes are rendered
+    /// dielectric, and on them the channel cost up to 0.4 dB albedo (its mean stayed 0.02–0.07).
+    pub fn resolve(self, format: Format) -> bool {
+        match self {
+            MetallicMode::On => true,
+            MetallicMode::Off => false,
+            MetallicMode::Auto => !matches!(format, Format::Transforms),
+        }
+    }
+}
+
 /// The capture's recorded lighting for stage 2, shared by `train`, `bake` and `bench material`.
 #[derive(Debug, Clone, Default, clap::Args)]
 pub struct KnownEnv {
@@ -83,7 +111,7 @@ pub struct KnownEnv {
 
 impl Default for MaterialOptions {
     fn default() -> Self {
-        Self { lobes: None, indirect: IndirectMode::Ours, decoder: None, roughness: RoughnessMode::Field, boundary: BoundaryMode::Flowing, refine_geometry: false, material_iterations: None, material_batch: None, material_set: Vec::new(), known_env: KnownEnv::default() }
+        Self { lobes: None, indirect: IndirectMode::Ours, decoder: None, roughness: RoughnessMode::Field, metallic: MetallicMode::Auto, boundary: BoundaryMode::Flowing, refine_geometry: false, material_iterations: None, material_batch: None, material_set: Vec::new(), known_env: KnownEnv::default() }
     }
 }
 
@@ -98,14 +126,20 @@ pub const TINTED_LIGHT_ABOVE: f64 = 2.5;
 
 /// The report's flag for a learnt light tinted past [`TINTED_LIGHT_ABOVE`] (`energies`: per
 /// channel, [`Stage2Model::channel_energies`]); `None` for a plausible or a dark light.
-pub fn tinted_light_flag(energies: [f64; 3]) -> Option<String> {
+/// `metallic`: whether the run modelled metals (the likely causes differ).
+pub fn tinted_light_flag(energies: [f64; 3], metallic: bool) -> Option<String> {
     let (lo, hi) = energies.iter().fold((f64::INFINITY, 0.0f64), |(a, b), &e| (a.min(e), b.max(e)));
     if !(hi > 0.0 && energies.iter().all(|e| e.is_finite())) || hi <= TINTED_LIGHT_ABOVE * lo {
         return None;
     }
     let g = energies[1].max(1e-12);
+    let causes = if metallic {
+        "a strongly coloured light, or a metal whose coloured highlights the metallic channel did not take, causes it"
+    } else {
+        "a metallic object (its coloured highlights are not modelled, so the light takes their colour: `--metallic on` models them) or a strongly coloured light causes it"
+    };
     Some(format!(
-        "the learnt light is strongly tinted (R:G:B energy {:.2} : 1 : {:.2}, beyond the {TINTED_LIGHT_ABOVE}× a real environment reaches): the albedo carries the opposite tint; a metallic object (its coloured highlights are not modelled, so the light takes their colour) or a strongly coloured light causes it",
+        "the learnt light is strongly tinted (R:G:B energy {:.2} : 1 : {:.2}, beyond the {TINTED_LIGHT_ABOVE}× a real environment reaches): the albedo carries the opposite tint; {causes}",
         energies[0] / g,
         energies[2] / g
     ))
@@ -224,6 +258,7 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &s
     cfg.refine_geometry = opts.refine_geometry;
     let synthetic = matches!(format, Format::Transforms);
     cfg.decoder = opts.decoder.unwrap_or(if synthetic { DecoderMode::Separate } else { DecoderMode::Shared });
+    cfg.metallic = opts.metallic.resolve(format);
     if let Some(k) = opts.lobes {
         cfg.lobes = k;
     }
@@ -242,6 +277,11 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &s
             None => "learnt from the photos".to_string(),
         },
         "lobes": if opts.lobes.is_some() { "forced by --lobes".to_string() } else { format!("{} preset default; lobes left with no energy are reported after training", preset.name()) },
+        "metallic": match opts.metallic {
+            MetallicMode::Auto if synthetic => "off: a synthetic (transforms.json) scene, rendered dielectric (`--metallic on` models metals)".to_string(),
+            MetallicMode::Auto => "on: a real capture, whose objects may be metal (`--metallic off` forces a dielectric)".to_string(),
+            _ => "forced by --metallic".to_string(),
+        },
         "decoder": if opts.decoder.is_some() { "forced by --decoder".to_string() } else if synthetic { "separate: a synthetic (transforms.json) scene".to_string() } else { "shared: a real capture (supplementary §5.2)".to_string() },
         "points": format!("min(preset cap, {} masked training pixels)", data.foreground_pixels()),
         "material_encoding": if preset == Preset::Fast { format!("hash grid, finest {} cells (half stage 1's {} at most, and at least {MATERIAL_POINTS_PER_CELL} of its {} cached points per cell), 2^{} entries per level (stage 1's), latent smoothness {}", finest, sizes.grid_finest, cached_points, sizes.grid_log2_table, GRID_SMOOTH_WEIGHT) } else { format!("PE{} (the paper's)", cfg.pos_freqs) },
@@ -544,7 +584,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     }
     let channel_energy = trainer.model.channel_energies();
     if !cfg.light_fixed {
-        flags.extend(tinted_light_flag(channel_energy));
+        flags.extend(tinted_light_flag(channel_energy, cfg.metallic));
     }
     // A one-colour object: nothing in the photos tells its albedo from the shading on it.
     let texture = crate::scene::texture::photo_texture(&views);
