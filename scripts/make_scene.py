@@ -2,11 +2,12 @@
 
 Renders one synthetic scene in the NeRF/Blender `transforms_{train,test}.json` format with Cycles on the CPU,
 deterministically (fixed seed, fixed sample count, fixed thread count, denoiser off, no metadata stamps),
-view transform "Standard", transparent film, one Principled BSDF per object (metallic 0, albedo and roughness
-from image textures), lit only by an HDR latlong world from `shared/data/envmaps`.
+view transform "Standard", transparent film, one Principled BSDF per object (albedo and roughness from image
+textures; metallic 0, except the `metal` scene's, from a metallic texture), lit only by an HDR latlong world from
+`shared/data/envmaps`.
 
 Usage:
-    python scripts/make_scene.py --scene {spot,bowl,glossy,textureless} --out DIR [--width 200] [--height 200]
+    python scripts/make_scene.py --scene {spot,bowl,glossy,textureless,metal} --out DIR [--width 200] [--height 200]
         [--train 24] [--test 4] [--samples 64] [--gt-samples 16] [--env-width 512] [--threads 2]
         [--data ../shared/data]
 
@@ -20,6 +21,7 @@ Output layout (all paths relative to DIR; the world frame is Blender's: right-ha
     test/r_NNN_albedo.png                         GT base colour (sRGB-encoded RGBA, alpha = coverage).
     test/r_NNN_roughness.png                      GT perceptual roughness R (linear 8-bit, R=G=B, alpha).
     test/r_NNN_normal.png                         GT world-space shading normal n, stored as n*0.5+0.5 (linear).
+    test/r_NNN_metallic.png                       GT metallic (linear 8-bit, R=G=B, alpha; the `metal` scene only).
     test/r_NNN_relit_<env>.png                    the test view relit by another environment (sRGB RGBA).
     env/train.exr, env/<env>.exr                  the environments exactly as rendered with (linear float
                                                   latlong, 2:1), in **Blender's World convention**: +Z up,
@@ -28,7 +30,8 @@ Output layout (all paths relative to DIR; the world frame is Blender's: right-ha
                                                   once the scene's Z-up world is mapped to glTF's Y-up frame as
                                                   (x, y, z) -> (x, z, -y)).
     gt/mesh.obj                                   GT triangle mesh in the world frame (v, f; 1-based).
-    gt/albedo_*.png, gt/roughness_*.png           the textures used (sRGB albedo, linear roughness).
+    gt/albedo_*.png, gt/roughness_*.png           the textures used (sRGB albedo, linear roughness; linear
+    gt/metallic_*.png                             metallic where a scene has one).
     scene.json                                    metadata: scene kind, world frame, env convention, GT file
                                                   naming, probe points on the surface, render settings.
     render_log.json                               wall-clock time per phase (not deterministic; not compared).
@@ -60,7 +63,7 @@ def parse_args(argv):
     if not os.path.isdir(default_data):
         default_data = "/work/shared/data"
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--scene", choices=["spot", "bowl", "glossy", "textureless"], required=True)
+    p.add_argument("--scene", choices=["spot", "bowl", "glossy", "textureless", "metal"], required=True)
     p.add_argument("--out", required=True)
     p.add_argument("--width", type=int, default=200)
     p.add_argument("--height", type=int, default=200)
@@ -81,6 +84,7 @@ ENVS = {
     "bowl": ("blender_studiolights/sunrise.exr", ["blender_studiolights/studio.exr", "blender_studiolights/city.exr"]),
     "glossy": ("blender_studiolights/forest.exr", ["blender_studiolights/interior.exr", "invrender/envmap12.exr"]),
     "textureless": ("blender_studiolights/courtyard.exr", ["blender_studiolights/studio.exr", "invrender/envmap3.exr"]),
+    "metal": ("blender_studiolights/courtyard.exr", ["blender_studiolights/sunset.exr", "invrender/envmap6.exr"]),
 }
 
 
@@ -136,7 +140,7 @@ def checker_albedo(n, c0, c1, cells):
 # ---------------------------------------------------------------- materials
 
 
-def principled_material(name, albedo_img, rough_img):
+def principled_material(name, albedo_img, rough_img, metal_img=None):
     mat = bpy.data.materials.new(name)
     mat.use_nodes = True
     nt = mat.node_tree
@@ -156,15 +160,24 @@ def principled_material(name, albedo_img, rough_img):
     nt.links.new(uv.outputs["UV"], tr.inputs["Vector"])
     nt.links.new(ta.outputs["Color"], bsdf.inputs["Base Color"])
     nt.links.new(tr.outputs["Color"], bsdf.inputs["Roughness"])
+    if metal_img is not None:
+        tm = nt.nodes.new("ShaderNodeTexImage")
+        tm.image = metal_img
+        tm.interpolation = "Linear"
+        nt.links.new(uv.outputs["UV"], tm.inputs["Vector"])
+        nt.links.new(tm.outputs["Color"], bsdf.inputs["Metallic"])
     nt.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
     # Keep handles for the ground-truth passes (emission swaps).
     mat["pii_albedo"] = albedo_img.name
     mat["pii_rough"] = rough_img.name
+    if metal_img is not None:
+        mat["pii_metal"] = metal_img.name
     return mat
 
 
-def emission_material(name, kind, albedo_img=None, rough_img=None):
-    """Emission-only material that outputs a GT quantity: albedo, roughness or normal*0.5+0.5."""
+def emission_material(name, kind, albedo_img=None, rough_img=None, metal_img=None):
+    """Emission-only material that outputs a GT quantity: albedo, roughness, metallic (0 without a metallic
+    texture) or normal*0.5+0.5."""
     mat = bpy.data.materials.new(name)
     mat.use_nodes = True
     nt = mat.node_tree
@@ -180,6 +193,16 @@ def emission_material(name, kind, albedo_img=None, rough_img=None):
         t.interpolation = "Linear"
         nt.links.new(uv.outputs["UV"], t.inputs["Vector"])
         nt.links.new(t.outputs["Color"], em.inputs["Color"])
+    elif kind == "metallic":
+        if metal_img is None:
+            em.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
+        else:
+            uv = nt.nodes.new("ShaderNodeTexCoord")
+            t = nt.nodes.new("ShaderNodeTexImage")
+            t.image = metal_img
+            t.interpolation = "Linear"
+            nt.links.new(uv.outputs["UV"], t.inputs["Vector"])
+            nt.links.new(t.outputs["Color"], em.inputs["Color"])
     else:
         geo = nt.nodes.new("ShaderNodeNewGeometry")
         ma = nt.nodes.new("ShaderNodeVectorMath")
@@ -221,6 +244,21 @@ def build_spot(args, tex_dir):
     ob.data.materials.clear()
     ob.data.materials.append(principled_material("spot", a, r))
     return [ob]
+
+
+def build_metal(args, tex_dir):
+    # Spot with metal patches: a checker of metallic 1 and 0 (large cells, so both show in every view) over
+    # spot's albedo (a metal's reflectance colour where metallic) and roughness. A dielectric-only model can
+    # give a metal's albedo-coloured highlights only to the light.
+    objs = build_spot(args, tex_dir)
+    m = save_texture("spot_metal", checker_albedo(256, (0.0, 0.0, 0.0), (1.0, 1.0, 1.0), 4),
+                     os.path.join(tex_dir, "metallic_spot.png"), non_color=True)
+    ob = objs[0]
+    old = ob.data.materials[0]
+    a, r = bpy.data.images[old["pii_albedo"]], bpy.data.images[old["pii_rough"]]
+    ob.data.materials.clear()
+    ob.data.materials.append(principled_material("spot_metal", a, r, m))
+    return objs
 
 
 def bowl_and_ball():
@@ -467,7 +505,9 @@ def main(argv):
     times = {}
     t0 = time.time()
     tex_dir = os.path.join(out, "gt")
-    objs = {"spot": build_spot, "bowl": build_bowl, "glossy": build_glossy, "textureless": build_textureless}[args.scene](args, tex_dir)
+    objs = {"spot": build_spot, "bowl": build_bowl, "glossy": build_glossy, "textureless": build_textureless,
+            "metal": build_metal}[args.scene](args, tex_dir)
+    has_metal = any("pii_metal" in s.material for ob in objs for s in ob.material_slots)
     verts, tris = world_triangles(objs)
     write_obj(os.path.join(out, "gt", "mesh.obj"), verts, tris)
     lo, hi = verts.min(axis=0), verts.max(axis=0)
@@ -524,14 +564,15 @@ def main(argv):
     bg.inputs["Strength"].default_value = 0.0
     scene.cycles.samples = args.gt_samples
     scene.cycles.max_bounces = 0
-    for kind in ("albedo", "roughness", "normal"):
+    for kind in ("albedo", "roughness", "normal") + (("metallic",) if has_metal else ()):
         scene.view_settings.view_transform = "Standard" if kind == "albedo" else "Raw"
         for ob in objs:
             for slot in ob.material_slots:
                 orig = saved_mats[ob.name][0]
+                metal = bpy.data.images[orig["pii_metal"]] if "pii_metal" in orig else None
                 slot.material = emission_material("%s_%s" % (ob.name, kind), kind,
                                                   bpy.data.images[orig["pii_albedo"]],
-                                                  bpy.data.images[orig["pii_rough"]])
+                                                  bpy.data.images[orig["pii_rough"]], metal)
         for i, fr in enumerate(frames["test"]):
             cam.matrix_world = Matrix(fr["transform_matrix"])
             bpy.context.view_layer.update()
@@ -580,6 +621,7 @@ def main(argv):
             "roughness": "test/{name}_roughness.png (linear, R=G=B)",
             "normal": "test/{name}_normal.png (linear, world normal * 0.5 + 0.5)",
             "relit": "test/{name}_relit_{env}.png (sRGB RGBA)",
+            **({"metallic": "test/{name}_metallic.png (linear, R=G=B)"} if has_metal else {}),
         },
         "render": {"width": args.width, "height": args.height, "samples": args.samples,
                    "gt_samples": args.gt_samples, "seed": 0, "threads": args.threads, "denoiser": False,

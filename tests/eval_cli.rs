@@ -69,6 +69,49 @@ fn identical_prediction_is_perfect() {
     assert!(f(&m["mesh"]["chamfer"]) < 1e-9, "{}", m["mesh"]);
     assert!((f(&m["mesh"]["normal_consistency"]) - 1.0).abs() < 1e-12);
     assert_eq!(m["missing"].as_array().unwrap().len(), 0, "{}", m["missing"]);
+    assert!(m.get("metallic").is_none(), "the example has no metallic ground truth");
+}
+
+#[test]
+fn metallic_is_scored_where_the_ground_truth_has_it_and_a_dielectric_prediction_counts_as_0() {
+    // A ground truth with metallic views (each view's roughness PNG standing in for its metallic map).
+    let gt = tempfile::tempdir().unwrap();
+    let g = gt.path();
+    std::fs::create_dir(g.join("test")).unwrap();
+    std::fs::copy(example().join("transforms_test.json"), g.join("transforms_test.json")).unwrap();
+    let (pred, none) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    std::fs::create_dir(pred.path().join("test")).unwrap();
+    std::fs::create_dir(none.path().join("test")).unwrap();
+    let mut mean_sq = 0.0;
+    for name in test_names() {
+        let rough = example().join(format!("test/{name}_roughness.png"));
+        std::fs::copy(&rough, g.join(format!("test/{name}_metallic.png"))).unwrap();
+        std::fs::copy(&rough, g.join(format!("test/{name}_roughness.png"))).unwrap();
+        std::fs::copy(&rough, pred.path().join(format!("test/{name}_metallic.png"))).unwrap();
+        std::fs::copy(&rough, none.path().join(format!("test/{name}_roughness.png"))).unwrap();
+        // The GT-alpha-weighted mean of m² (a 0 prediction's error).
+        let img = image::open(&rough).unwrap().to_rgba8();
+        let (mut s, mut w) = (0.0, 0.0);
+        for px in img.pixels() {
+            let (m, a) = (px[0] as f64 / 255.0, px[3] as f64 / 255.0);
+            s += a * m * m;
+            w += a;
+        }
+        mean_sq += s / w / test_names().len() as f64;
+    }
+    let run = |pred: &Path| -> serde_json::Value {
+        let out = pred.join("metrics.json");
+        let st = assert_cmd::Command::cargo_bin("pii-bake").unwrap().args(["eval", "--gt"]).arg(g).arg("--pred").arg(pred).arg("--out").arg(&out).output().unwrap();
+        assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+        serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap()
+    };
+    let m = run(pred.path());
+    assert_eq!(f(&m["metallic"]["mse"]), 0.0, "{}", m["metallic"]);
+    assert_eq!(m["metallic"]["views"], test_names().len() as u64);
+    let m = run(none.path());
+    let got = f(&m["metallic"]["mse"]);
+    assert!((got - mean_sq).abs() < 1e-3 * mean_sq && got > 0.01, "{got} vs {mean_sq}");
+    assert!(m["metallic"]["predicted"].as_str().unwrap().contains("dielectric"), "{}", m["metallic"]);
 }
 
 #[test]

@@ -11,10 +11,14 @@ fn python() -> String {
 }
 
 fn run(out: &Path) {
+    run_scene(out, "spot");
+}
+
+fn run_scene(out: &Path, scene: &str) {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/make_scene.py");
     let st = Command::new(python())
         .arg(&script)
-        .args(["--scene", "spot", "--width", "32", "--height", "32", "--train", "2", "--test", "1"])
+        .args(["--scene", scene, "--width", "32", "--height", "32", "--train", "2", "--test", "1"])
         .args(["--samples", "4", "--gt-samples", "2", "--env-width", "64", "--threads", "2", "--out"])
         .arg(out)
         .output()
@@ -53,6 +57,21 @@ fn make_scene_is_deterministic_and_readable() {
     for needed in ["transforms_train.json", "test/r_000_albedo.png", "test/r_000_roughness.png", "test/r_000_normal.png", "env/train.exr", "gt/mesh.obj"] {
         assert!(fa.contains(&PathBuf::from(needed)), "{needed} missing");
     }
+    assert!(!fa.contains(&PathBuf::from("test/r_000_metallic.png")), "a dielectric scene has no metallic pass");
     let scene = pii_bake::scene::load(a.path(), &Default::default()).unwrap();
     assert_eq!(scene.views.len(), 3);
+}
+
+#[test]
+fn the_metal_scene_has_a_metallic_pass_with_metal_and_dielectric_in_view() {
+    let d = tempfile::tempdir().unwrap();
+    run_scene(d.path(), "metal");
+    let img = image::open(d.path().join("test/r_000_metallic.png")).unwrap().to_rgba8();
+    let covered: Vec<u8> = img.pixels().filter(|p| p[3] == 255).map(|p| p[0]).collect();
+    let metal = covered.iter().filter(|&&m| m > 200).count();
+    let dielectric = covered.iter().filter(|&&m| m < 55).count();
+    assert!(metal * 10 > covered.len() && dielectric * 10 > covered.len(), "{metal} metal, {dielectric} dielectric of {} pixels", covered.len());
+    let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(d.path().join("scene.json")).unwrap()).unwrap();
+    assert!(meta["test_gt"]["metallic"].is_string(), "{}", meta["test_gt"]);
+    assert!(d.path().join("gt/metallic_spot.png").is_file());
 }

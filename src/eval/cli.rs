@@ -12,6 +12,7 @@
 //! | relit view PSNR/SSIM, per environment `<env>` | `test/<name>_relit_<env>.png` | same name (`.png`/`.exr`) |
 //! | albedo PSNR after per-channel LS scale (all views together) | `test/<name>_albedo.png` | same name |
 //! | roughness MSE (GT alpha-weighted) | `test/<name>_roughness.png` | same name |
+//! | metallic MSE (GT alpha-weighted), where the GT has it | `test/<name>_metallic.png` (linear) | same name; none = a dielectric model's 0 |
 //! | normal mean angular error, degrees (pixels both cover) | `test/<name>_normal.png` (world n·0.5+0.5, linear) | same name |
 //!
 //! and once: environment error after per-channel scale alignment, GT `env/train.exr` vs `env.exr` (same
@@ -56,6 +57,29 @@ pub struct EvalArgs {
     pub gt_env: Option<PathBuf>,
     #[arg(long)]
     pub pred_env: Option<PathBuf>,
+}
+
+/// The GT-alpha-weighted MSE of a one-value map (`rel`: `test/<name>_<what>`, linear PNG values).
+/// A missing prediction is listed under `missing` (None), or with `missing_is_zero` scored as 0
+/// everywhere at the ground truth's size.
+fn value_map_mse(gt: &Path, pred: &Path, rel: &str, missing_is_zero: bool, found: &mut Found) -> Result<Option<f64>, DataError> {
+    let gp = gt.join(format!("{rel}.png"));
+    let (gw, gh, gv) = read_mask(&gp)?;
+    let alpha = read_image_linear(&gp)?.alpha();
+    let (pv, n) = match find_pred(&pred.join(rel)) {
+        Some(pp) => {
+            let (pw, ph, pv) = read_mask(&pp)?;
+            let n = found.factor((pw, ph), (gw, gh), &pp, &gp)?;
+            (pv, n)
+        }
+        None if missing_is_zero => (vec![0.0; gv.len()], 1),
+        None => {
+            found.missing.push(rel.to_string());
+            return Ok(None);
+        }
+    };
+    let (gv, alpha) = downscale_weighted(gv, 1, (gw, gh), alpha, n);
+    Ok(Some(weighted_mse(&pv, &gv, 1, alpha.as_deref())))
 }
 
 fn find_pred(base: &Path) -> Option<PathBuf> {
@@ -286,21 +310,31 @@ pub fn evaluate(args: &EvalArgs) -> Result<Value, DataError> {
 
     let mut rough = Vec::new();
     for name in &names {
-        let rel = format!("test/{name}_roughness");
-        let gp = gt.join(format!("{rel}.png"));
-        let Some(pp) = find_pred(&pred.join(&rel)) else {
-            found.missing.push(rel);
-            continue;
-        };
-        let (gw, gh, gv) = read_mask(&gp)?;
-        let (pw, ph, pv) = read_mask(&pp)?;
-        let alpha = read_image_linear(&gp)?.alpha();
-        let n = found.factor((pw, ph), (gw, gh), &pp, &gp)?;
-        let (gv, alpha) = downscale_weighted(gv, 1, (gw, gh), alpha, n);
-        rough.push(weighted_mse(&pv, &gv, 1, alpha.as_deref()));
+        if let Some(e) = value_map_mse(gt, pred, &format!("test/{name}_roughness"), false, &mut found)? {
+            rough.push(e);
+        }
     }
     if !rough.is_empty() {
         report.insert("roughness".into(), json!({"views": rough.len(), "mse": mean(&rough), "per_view_mse": rough}));
+    }
+
+    // Metallic: where the ground truth has it (a scene with metals); a prediction without it is a
+    // dielectric model's, scored as 0 everywhere.
+    let mut metal = Vec::new();
+    let mut metal_predicted = true;
+    for name in &names {
+        let rel = format!("test/{name}_metallic");
+        if !gt.join(format!("{rel}.png")).is_file() {
+            continue;
+        }
+        metal_predicted &= find_pred(&pred.join(&rel)).is_some();
+        if let Some(e) = value_map_mse(gt, pred, &rel, true, &mut found)? {
+            metal.push(e);
+        }
+    }
+    if !metal.is_empty() {
+        let predicted = if metal_predicted { "the prediction's metallic views" } else { "none predicted (a dielectric model): scored as 0" };
+        report.insert("metallic".into(), json!({"views": metal.len(), "mse": mean(&metal), "per_view_mse": metal, "predicted": predicted}));
     }
 
     let mut normal = Vec::new();
@@ -411,6 +445,9 @@ pub fn run(args: &EvalArgs, ctx: &Context) -> anyhow::Result<()> {
     }
     if let Some(r) = report.get("roughness") {
         ctx.say(format!("roughness    MSE {}", f(&r["mse"])));
+    }
+    if let Some(m) = report.get("metallic") {
+        ctx.say(format!("metallic     MSE {} ({})", f(&m["mse"]), m["predicted"].as_str().unwrap_or("")));
     }
     if let Some(n) = report.get("normal") {
         ctx.say(format!("normal       mean angular error {} degrees", f(&n["mae_degrees"])));
