@@ -121,15 +121,6 @@ pub fn roughness_from_decoder(y: f32) -> f32 {
 /// (0 where not modelled).
 const MAT: usize = 5;
 
-/// The metallic output's initial bias: 0, so every point starts at m = 0.5 and the photos decide
-/// either way. Measured with `--metallic on` (`train --stage material`, seed 0), bias 0 against
-/// −4 (m = 0.018, a dielectric prior): the Ethiopian head (bronze) turned metal at 0 (mean m 0.90,
-/// held-out PSNR 22.50 dB, its learnt light 2.0× between channels, no longer flagged) and only in
-/// part at −4 (mean 0.15, 22.46 dB, 2.8×); the dielectric example went back to m ≈ 0.0006 from
-/// 0.5 (albedo 27.23 / relit 27.79 / 26.64 dB; at −4 27.24 / 27.67 / 26.43) and the bowl to
-/// 0.029 either way (19.81 / 20.97 / 23.96 against 19.92 / 21.06 / 24.19).
-pub const METALLIC_INIT_BIAS: f32 = 0.0;
-
 /// Where roughness comes from.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default, clap::ValueEnum, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -278,7 +269,16 @@ pub struct Stage2Config {
     /// decoder, or the shared one), shading with `F0 = mix(0.04, albedo, m)` and the diffuse term
     /// scaled by `1 − m` (glTF's metallic-roughness model, which the asset's ORM texture carries).
     /// A dielectric-only model cannot make a metal's coloured highlights: the light takes their
-    /// colour and the albedo the opposite tint. Its output starts at `σ(METALLIC_INIT_BIAS)` = 0.5.
+    /// colour and the albedo the opposite tint.
+    ///
+    /// Its output starts near 0.5 (the decoder's biases start at 0), so the photos decide either
+    /// way. Measured (`train --stage material`, seed 0) against an output bias of −4 (m = 0.018, a
+    /// dielectric prior): the Ethiopian head (bronze) turned metal from 0.5 (mean m 0.90, held-out
+    /// PSNR 22.50 dB, its learnt light 2.0× between channels, no longer flagged) and only in part
+    /// from 0.018 (mean 0.15, 22.46 dB, 2.8×); the dielectric example went back to m ≈ 0.0006 from
+    /// 0.5 (albedo 27.23 / relit 27.79 / 26.64 dB; from 0.018: 27.24 / 27.67 / 26.43) and the bowl
+    /// to 0.029 either way (19.81 / 20.97 / 23.96 against 19.92 / 21.06 / 24.19).
+    ///
     /// Run files without the field read false (dielectric) and resume as they ran.
     #[serde(default)]
     pub metallic: bool,
@@ -713,15 +713,7 @@ impl Stage2Model {
         let indirect = Mlp::new(cfg.indirect_mlp())?;
         let mut enc_params = mat_enc.init(cfg.seed.wrapping_add(100));
         enc_params.extend(encoder.init(Init::Default, cfg.seed.wrapping_add(101)));
-        let mut dec_params: Vec<Vec<f32>> = decoders.iter().enumerate().map(|(i, (m, _))| m.init(Init::Default, cfg.seed.wrapping_add(202 + i as u64))).collect();
-        // The metallic column's output bias (the last layer's bias `4 − o`).
-        for ((m, o), p) in decoders.iter().zip(dec_params.iter_mut()) {
-            if cfg.metallic && (*o..*o + m.out_dim()).contains(&4) {
-                if let Some(last) = m.layers.last() {
-                    p[last.b + 4 - o] = METALLIC_INIT_BIAS;
-                }
-            }
-        }
+        let dec_params = decoders.iter().enumerate().map(|(i, (m, _))| m.init(Init::Default, cfg.seed.wrapping_add(202 + i as u64))).collect();
         let ind_params = indirect.init(Init::Default, cfg.seed.wrapping_add(303));
         let light = init_light(cfg.lobes, cfg.seed, cfg.log_amplitude);
         Ok(Self { cfg: cfg.clone(), mat_enc, encoder, decoders, indirect, enc_params, dec_params, light, ind_params })
