@@ -67,9 +67,9 @@ fn stage_two_resumes_exactly_exports_and_relights() {
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("material_report.json")).unwrap()).unwrap();
     assert_eq!(report["sizes"]["lobes"], 6);
     assert_eq!(report["config"]["decoder"], "separate", "a transforms.json scene is synthetic");
-    assert_eq!(report["config"]["metallic"], false, "a synthetic scene is dielectric under --metallic auto");
-    assert!(report["sizes"]["why"]["metallic"].as_str().unwrap().starts_with("off"), "{}", report["sizes"]["why"]);
-    assert!(report["material"]["metallic"].is_null());
+    assert_eq!(report["config"]["metallic"], true, "metals are modelled by default");
+    assert!(report["sizes"]["why"]["metallic"].as_str().unwrap().starts_with("on"), "{}", report["sizes"]["why"]);
+    assert!(report["material"]["metallic"]["mean"].as_f64().unwrap().is_finite());
     assert!(report["cache"]["points"].as_u64().unwrap() > 100);
     assert!(report["eval"]["psnr"].as_f64().unwrap().is_finite());
     // The fast preset's material grid: half stage 1's finest resolution, stage 1's table, and the
@@ -147,13 +147,6 @@ fn stage_two_resumes_exactly_exports_and_relights() {
 
 #[test]
 fn a_metallic_run_trains_exports_its_metallic_texture_and_relights_its_view() {
-    use pii_bake::scene::Format;
-    use pii_bake::train::material::MetallicMode;
-    // `auto`: real captures get the channel, synthetic scenes do not.
-    for f in [Format::Llff, Format::Idr, Format::Colmap] {
-        assert!(MetallicMode::Auto.resolve(f), "{f:?}");
-    }
-    assert!(!MetallicMode::Auto.resolve(Format::Transforms) && MetallicMode::On.resolve(Format::Transforms) && !MetallicMode::Off.resolve(Format::Llff));
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
     stage1(&run);
@@ -161,7 +154,7 @@ fn a_metallic_run_trains_exports_its_metallic_texture_and_relights_its_view() {
     assert!(o.status.success(), "{}", text(&o));
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("material_report.json")).unwrap()).unwrap();
     assert_eq!(report["config"]["metallic"], true);
-    assert!(report["sizes"]["why"]["metallic"].as_str().unwrap().contains("--metallic"), "{}", report["sizes"]["why"]);
+    assert!(report["sizes"]["why"]["metallic"].as_str().unwrap().contains("--metallic off"), "{}", report["sizes"]["why"]);
     let m = &report["material"]["metallic"];
     assert!(m["mean"].as_f64().unwrap() > 0.2 && m["mean"].as_f64().unwrap() < 0.8, "starts at 0.5, neither metal nor dielectric: {m}");
     let asset = dir.path().join("asset");
@@ -179,6 +172,19 @@ fn a_metallic_run_trains_exports_its_metallic_texture_and_relights_its_view() {
     let o = pii(&["relight", run.to_str().unwrap(), "--env", env.to_str().unwrap(), "--lobes", "8", "--max-views", "1", "--downscale", "4", "--out", rel.to_str().unwrap()]);
     assert!(o.status.success(), "{}", text(&o));
     assert!(rel.join("test/r_000_metallic.png").is_file(), "{}", text(&o));
+    // `--metallic off`: four material channels, a dielectric asset, no metallic view.
+    let off = dir.path().join("off");
+    stage1(&off);
+    let o = stage2(&off, &["--material-iterations", "2", "--metallic", "off"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(off.join("material_report.json")).unwrap()).unwrap();
+    assert_eq!(report["config"]["metallic"], false);
+    assert!(report["material"]["metallic"].is_null());
+    let asset = dir.path().join("asset_off");
+    let o = pii(&["export", "--run", off.to_str().unwrap(), "--out", asset.to_str().unwrap(), "--resolution", "40", "--texture", "64", "--name", "spot"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let orm = image::open(asset.join("textures/orm.png")).unwrap().to_rgb8();
+    assert!(orm.pixels().all(|p| p[2] == 0), "a dielectric asset's ORM B is 0");
 }
 
 #[test]
@@ -620,9 +626,9 @@ fn a_strongly_tinted_learnt_light_is_flagged_and_real_maps_are_not() {
     }
     // The Ethiopian head's learnt light (bronze) is flagged, with its ratios.
     let flag = tinted_light_flag(e, false).expect("a 4.3x tint is flagged");
-    assert!(flag.contains("1.38 : 1 : 0.32") && flag.contains("--metallic on"), "dielectric: {flag}");
+    assert!(flag.contains("1.38 : 1 : 0.32") && flag.contains("--metallic off"), "dielectric: {flag}");
     let flag = tinted_light_flag(e, true).expect("flagged with metals modelled too");
-    assert!(flag.contains("1.38 : 1 : 0.32") && flag.contains("did not take") && !flag.contains("--metallic on"), "metallic: {flag}");
+    assert!(flag.contains("1.38 : 1 : 0.32") && flag.contains("did not take") && !flag.contains("--metallic off"), "metallic: {flag}");
     // Every HDR map shipped in shared/data, energy per channel over the sphere, is not.
     let dir = shared_data().join("envmaps");
     let mut maps = 0;
