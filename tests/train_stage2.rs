@@ -314,9 +314,13 @@ fn gradient_matches_for_the_mii_baseline() {
 fn gradient_matches_with_constant_roughness_and_hash_grid_material() {
     // PhySG-like baseline: one roughness for the object, both decoder layouts.
     for decoder in [DecoderMode::Separate, DecoderMode::Shared] {
-        let mut c = tiny(IndirectMode::None, decoder);
-        c.roughness = RoughnessMode::Constant;
-        check_config(c);
+        for metallic in [false, true] {
+            let mut c = tiny(IndirectMode::None, decoder);
+            c.roughness = RoughnessMode::Constant;
+            // The metallic channel stays per point beside the constant roughness (same decoder).
+            c.metallic = metallic;
+            check_config(c);
+        }
     }
     // The material field on a (tiny) hash grid: its tables lead the encoder's parameters.
     let mut c = tiny(IndirectMode::Ours, DecoderMode::Separate).with_material_grid(8, 6);
