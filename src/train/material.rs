@@ -857,12 +857,13 @@ pub fn export_stage2(backend: &Backend, s1: &Trainer, s2: &Stage2Trainer, rs: &R
     let t = Instant::now();
     let report = crate::export::export_asset_with(backend, &sdf, &material, Some(&env), &ecfg, &asset.out, &ctx.spinner("export"))?;
     ctx.say(format!(
-        "export: {} triangles (error bound {:.4} normalised units, watertight {}), {} UV charts, {}² albedo/roughness textures from the material field, learned environment ({} lobes), files in {} [{:.2} s]",
+        "export: {} triangles (error bound {:.4} normalised units, watertight {}), {} UV charts, {}² albedo/roughness{} textures from the material field, learned environment ({} lobes), files in {} [{:.2} s]",
         report.mesh.triangles,
         report.mesh.error_bound,
         report.mesh.watertight,
         report.uv_charts,
         report.texture_size,
+        if s2.model.cfg.metallic { "/metallic" } else { "" },
         env.lobes.len(),
         asset.out.display(),
         t.elapsed().as_secs_f64()
