@@ -301,7 +301,7 @@ fn bench_material(variants: &[&str]) -> (tempfile::TempDir, std::path::PathBuf) 
 fn bench_material_writes_figures_per_variant() {
     let (_dir, out) = bench_material(&["--indirect", "ours", "none", "--boundary", "flowing", "detached", "--geometry", "frozen", "refined", "--relight-views", "0"]);
     let csv = std::fs::read_to_string(out.join("bench-material.csv")).unwrap();
-    assert!(csv.lines().next().unwrap().contains(",novel_view_psnr,albedo_psnr,relit_psnr,relit_aligned_psnr,relit_per_map,roughness_mse,"), "{csv}");
+    assert!(csv.lines().next().unwrap().contains(",novel_view_psnr,albedo_psnr,relit_psnr,relit_aligned_psnr,relit_per_map,roughness_mse,metallic_mse,"), "{csv}");
     let rows: Vec<&str> = csv.lines().skip(1).collect();
     assert_eq!(rows.len(), 8, "{csv}");
     let names: Vec<&str> = rows.iter().map(|r| r.split(',').next().unwrap()).collect();

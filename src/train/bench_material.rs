@@ -91,6 +91,8 @@ pub struct MaterialRow {
     /// `eval`'s novel-view PSNR of the relit folder's views under the learned light.
     pub novel_view_psnr: f64,
     pub roughness_mse: f64,
+    /// `eval`'s metallic MSE where the scene's ground truth has metallic views (NaN elsewhere).
+    pub metallic_mse: f64,
     pub env_relative_l2: f64,
     /// `eval`'s environment irradiance error (see [`crate::eval::EnvError::irradiance_error`]).
     pub env_irradiance_error: f64,
@@ -163,6 +165,7 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
                 relit_maps: Default::default(),
                 novel_view_psnr: f64::NAN,
                 roughness_mse: f64::NAN,
+                metallic_mse: f64::NAN,
                 env_relative_l2: f64::NAN,
                 env_irradiance_error: f64::NAN,
             };
@@ -176,6 +179,7 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
                 let m = crate::util::read_json_value(&metrics)?;
                 row.albedo_psnr = f(&m["albedo"]["psnr_aligned"]);
                 row.roughness_mse = f(&m["roughness"]["mse"]);
+                row.metallic_mse = f(&m["metallic"]["mse"]);
                 row.env_relative_l2 = f(&m["env"]["relative_l2"]);
                 row.env_irradiance_error = f(&m["env"]["irradiance_error"]);
                 if let Some(o) = m["relit"].as_object() {
@@ -194,11 +198,11 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
             rows.push(row);
         }
     }
-    let mut csv = String::from("variant,lobes,indirect,boundary,geometry,backend,iterations,seconds_cache,seconds_train,it_per_s,cache_evaluations,per_batch_evaluations,blocked_fraction,heldout_psnr,novel_view_psnr,albedo_psnr,relit_psnr,relit_aligned_psnr,relit_per_map,roughness_mse,env_relative_l2,env_irradiance_error\n");
+    let mut csv = String::from("variant,lobes,indirect,boundary,geometry,backend,iterations,seconds_cache,seconds_train,it_per_s,cache_evaluations,per_batch_evaluations,blocked_fraction,heldout_psnr,novel_view_psnr,albedo_psnr,relit_psnr,relit_aligned_psnr,relit_per_map,roughness_mse,metallic_mse,env_relative_l2,env_irradiance_error\n");
     for r in &rows {
         csv.push_str(&format!(
-            "{},{},{},{},{},\"{}\",{},{:.3},{:.3},{:.3},{},{},{:.5},{:.3},{:.3},{:.3},{:.3},{:.3},{},{:.5},{:.5},{:.5}\n",
-            r.variant, r.lobes, r.indirect, r.boundary, r.geometry, r.backend, r.iterations, r.seconds_cache, r.seconds_train, r.it_per_s, r.cache_evaluations, r.per_batch_evaluations, r.blocked_fraction, r.heldout_psnr, r.novel_view_psnr, r.albedo_psnr, r.relit_psnr, r.relit_aligned_psnr, relit_cell(&r.relit_maps), r.roughness_mse, r.env_relative_l2, r.env_irradiance_error
+            "{},{},{},{},{},\"{}\",{},{:.3},{:.3},{:.3},{},{},{:.5},{:.3},{:.3},{:.3},{:.3},{:.3},{},{:.5},{:.5},{:.5},{:.5}\n",
+            r.variant, r.lobes, r.indirect, r.boundary, r.geometry, r.backend, r.iterations, r.seconds_cache, r.seconds_train, r.it_per_s, r.cache_evaluations, r.per_batch_evaluations, r.blocked_fraction, r.heldout_psnr, r.novel_view_psnr, r.albedo_psnr, r.relit_psnr, r.relit_aligned_psnr, relit_cell(&r.relit_maps), r.roughness_mse, r.metallic_mse, r.env_relative_l2, r.env_irradiance_error
         ));
     }
     crate::util::atomic_write(&args.out.join("bench-material.csv"), csv.as_bytes())?;
