@@ -254,11 +254,8 @@ fn a_metallic_material_reaches_the_orm_texture_the_glb_and_the_usd() {
     let metal = orm.pixels().filter(|p| p[2] == 255).count() as f64 / orm.pixels().len() as f64;
     let dielectric = orm.pixels().filter(|p| p[2] == 0).count() as f64 / orm.pixels().len() as f64;
     assert!(metal > 0.2 && dielectric > 0.2 && metal + dielectric > 0.95, "ORM B: {metal:.2} metal, {dielectric:.2} dielectric");
-    // The .glb's material reads metallic from the texture (factor 1); its JSON chunk follows the
-    // 12-byte header and the chunk's 8-byte header.
-    let glb = std::fs::read(out.join("metal.glb")).unwrap();
-    let len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
-    let json: serde_json::Value = serde_json::from_slice(&glb[20..20 + len]).unwrap();
+    // The .glb's material reads metallic from the texture (factor 1).
+    let json = common::glb_json(&out.join("metal.glb"));
     let pbr = &json["materials"][0]["pbrMetallicRoughness"];
     assert_eq!(pbr["metallicFactor"].as_f64(), Some(1.0), "{pbr}");
     assert!(pbr["metallicRoughnessTexture"].is_object());
@@ -269,9 +266,7 @@ fn a_metallic_material_reaches_the_orm_texture_the_glb_and_the_usd() {
     // A dielectric field keeps factor 0 (and B = 0: `check_textures`).
     let plain = dir.path().join("plain");
     export_asset(&Backend::cpu(), &AnalyticSdf::new(AnalyticShape::Torus), &AnalyticMaterial::Checker, None, &ExportConfig { name: "plain".into(), ..cfg }, &plain).unwrap();
-    let glb = std::fs::read(plain.join("plain.glb")).unwrap();
-    let len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
-    let json: serde_json::Value = serde_json::from_slice(&glb[20..20 + len]).unwrap();
+    let json = common::glb_json(&plain.join("plain.glb"));
     assert_eq!(json["materials"][0]["pbrMetallicRoughness"]["metallicFactor"].as_f64().unwrap_or(0.0), 0.0);
     assert!(std::fs::read_to_string(plain.join("payload.usda")).unwrap().contains("float inputs:metallic = 0"));
 }

@@ -148,21 +148,24 @@ fn stage_two_resumes_exactly_exports_and_relights() {
 #[test]
 fn a_metallic_run_trains_exports_its_metallic_texture_and_relights_its_view() {
     let dir = tempfile::tempdir().unwrap();
-    let run = dir.path().join("run");
-    stage1(&run);
-    let o = stage2(&run, &["--material-iterations", "4", "--metallic", "on"]);
-    assert!(o.status.success(), "{}", text(&o));
-    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("material_report.json")).unwrap()).unwrap();
+    // Both stages and the export at test size: (the run, its stage-2 report, the asset folder).
+    let train_export = |name: &str, metallic: &str| {
+        let run = dir.path().join(name);
+        stage1(&run);
+        let o = stage2(&run, &["--material-iterations", "4", "--metallic", metallic]);
+        assert!(o.status.success(), "{}", text(&o));
+        let report: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("material_report.json")).unwrap()).unwrap();
+        let asset = dir.path().join(format!("{name}_asset"));
+        let o = pii(&["export", "--run", run.to_str().unwrap(), "--out", asset.to_str().unwrap(), "--resolution", "40", "--texture", "64", "--name", "spot"]);
+        assert!(o.status.success(), "{}", text(&o));
+        (run, report, asset)
+    };
+    let (run, report, asset) = train_export("on", "on");
     assert_eq!(report["config"]["metallic"], true);
     assert!(report["sizes"]["why"]["metallic"].as_str().unwrap().contains("--metallic off"), "{}", report["sizes"]["why"]);
     let m = &report["material"]["metallic"];
     assert!(m["mean"].as_f64().unwrap() > 0.2 && m["mean"].as_f64().unwrap() < 0.8, "starts at 0.5, neither metal nor dielectric: {m}");
-    let asset = dir.path().join("asset");
-    let o = pii(&["export", "--run", run.to_str().unwrap(), "--out", asset.to_str().unwrap(), "--resolution", "40", "--texture", "64", "--name", "spot"]);
-    assert!(o.status.success(), "{}", text(&o));
-    let glb = std::fs::read(asset.join("spot.glb")).unwrap();
-    let len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
-    let json: serde_json::Value = serde_json::from_slice(&glb[20..20 + len]).unwrap();
+    let json = common::glb_json(&asset.join("spot.glb"));
     assert_eq!(json["materials"][0]["pbrMetallicRoughness"]["metallicFactor"].as_f64(), Some(1.0));
     let orm = image::open(asset.join("textures/orm.png")).unwrap().to_rgb8();
     assert!(orm.pixels().any(|p| p[2] > 0), "the metallic channel reaches ORM B");
@@ -173,16 +176,9 @@ fn a_metallic_run_trains_exports_its_metallic_texture_and_relights_its_view() {
     assert!(o.status.success(), "{}", text(&o));
     assert!(rel.join("test/r_000_metallic.png").is_file(), "{}", text(&o));
     // `--metallic off`: four material channels, a dielectric asset, no metallic view.
-    let off = dir.path().join("off");
-    stage1(&off);
-    let o = stage2(&off, &["--material-iterations", "2", "--metallic", "off"]);
-    assert!(o.status.success(), "{}", text(&o));
-    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(off.join("material_report.json")).unwrap()).unwrap();
+    let (_, report, asset) = train_export("off", "off");
     assert_eq!(report["config"]["metallic"], false);
     assert!(report["material"]["metallic"].is_null());
-    let asset = dir.path().join("asset_off");
-    let o = pii(&["export", "--run", off.to_str().unwrap(), "--out", asset.to_str().unwrap(), "--resolution", "40", "--texture", "64", "--name", "spot"]);
-    assert!(o.status.success(), "{}", text(&o));
     let orm = image::open(asset.join("textures/orm.png")).unwrap().to_rgb8();
     assert!(orm.pixels().all(|p| p[2] == 0), "a dielectric asset's ORM B is 0");
 }

@@ -136,3 +136,10 @@ pub fn interrupt_after_progress(args: &[&str], markers: &[&str]) -> std::process
     for _ in lines {}
     child.wait_with_output().unwrap()
 }
+
+/// The JSON chunk of a .glb (it follows the 12-byte header and the chunk's 8-byte header).
+pub fn glb_json(path: &Path) -> serde_json::Value {
+    let glb = std::fs::read(path).unwrap();
+    let len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
+    serde_json::from_slice(&glb[20..20 + len]).unwrap()
+}
