@@ -299,7 +299,10 @@ pub fn bake(
     let t = Instant::now();
     let covered = filled.iter().filter(|&&f| f).count();
     let mut filled2 = filled.clone();
-    let mut filled3 = filled.clone();
+    let mean1 = |v: &[f32]| v.iter().sum::<f32>() / v.len() as f32;
+    if let Some(mm) = metallic.as_mut() {
+        dilate(size, mm, &mut filled.clone(), mean1, 0.0);
+    }
     let mean3 = |v: &[[f32; 3]]| {
         let n = v.len() as f32;
         let s = v
@@ -308,16 +311,7 @@ pub fn bake(
         [s[0] / n, s[1] / n, s[2] / n]
     };
     dilate(size, &mut albedo, &mut filled, mean3, [0.5; 3]);
-    dilate(
-        size,
-        &mut roughness,
-        &mut filled2,
-        |v: &[f32]| v.iter().sum::<f32>() / v.len() as f32,
-        0.5,
-    );
-    if let Some(mm) = metallic.as_mut() {
-        dilate(size, mm, &mut filled3, |v: &[f32]| v.iter().sum::<f32>() / v.len() as f32, 0.0);
-    }
+    dilate(size, &mut roughness, &mut filled2, mean1, 0.5);
     let seconds_dilate = t.elapsed().as_secs_f64();
     let stats = BakeStats {
         size,

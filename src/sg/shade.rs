@@ -366,13 +366,7 @@ impl<S: Scalar> BrdfSg<S> {
 
     /// [`lobe_factors`] of a light lobe (axis need not be unit; λ floored at [`LAMBDA_MIN`]).
     pub fn lobe_factors(&self, axis: V3<S>, lambda: S) -> (S, S) {
-        let axis = normalize(axis);
-        let lambda = lambda.max_c(LAMBDA_MIN);
-        // Specular: the light times the BRDF's SG, cosine-weighted over the hemisphere.
-        let (p_axis, p_lambda, e) = sg_product_shape(axis, lambda, self.axis, self.lambda);
-        let spec = self.amplitude * e * cosine_hemisphere_unit(p_axis, p_lambda, self.n);
-        // Diffuse: the light cosine-weighted over the hemisphere (times a/π in the caller).
-        let diff = cosine_hemisphere_unit(axis, lambda, self.n);
+        let (spec, _, diff) = self.lobe_factors_f0(axis, lambda);
         (spec, diff)
     }
 
@@ -382,8 +376,10 @@ impl<S: Scalar> BrdfSg<S> {
     pub fn lobe_factors_f0(&self, axis: V3<S>, lambda: S) -> (S, S, S) {
         let axis = normalize(axis);
         let lambda = lambda.max_c(LAMBDA_MIN);
+        // Specular: the light times the BRDF's SG, cosine-weighted over the hemisphere.
         let (p_axis, p_lambda, e) = sg_product_shape(axis, lambda, self.axis, self.lambda);
         let spec_unit = e * cosine_hemisphere_unit(p_axis, p_lambda, self.n);
+        // Diffuse: the light cosine-weighted over the hemisphere (times the albedo's weight in the caller).
         let diff = cosine_hemisphere_unit(axis, lambda, self.n);
         (self.amplitude * spec_unit, self.amplitude_f0 * spec_unit, diff)
     }

@@ -1457,9 +1457,8 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
             d_mat[MAT * i + c] = p.da[c] as f32;
         }
         d_mat[MAT * i + 3] = p.dr as f32;
-        if model.cfg.metallic {
-            d_mat[MAT * i + 4] = p.dm as f32;
-        }
+        // (No decoder reads channel 4 of a dielectric model.)
+        d_mat[MAT * i + 4] = p.dm as f32;
         let mut replaced = vec![usize::MAX; k];
         for &(kk, s) in &slot_of[i] {
             replaced[kk] = s;
