@@ -326,3 +326,49 @@ fn extreme_inputs_stay_finite_and_bounded() {
     let under = lobe_contribution(&s, &sg1(opposite, 200.0));
     assert!(under.0[0].abs() < 1e-6 && under.1[0].abs() < 1e-6, "{under:?}");
 }
+
+/// White furnace of a full reflector (`F0 = 1`): the specular under a constant unit environment
+/// (an SG of sharpness `LAMBDA_MIN` around the normal).
+fn furnace(model: pii_bake::sg::shade::BrdfModel, r: f64, cos_v: f64) -> (f64, f64) {
+    use pii_bake::sg::shade::{BrdfSg, F0, LAMBDA_MIN};
+    let n = [0.0, 0.0, 1.0];
+    let v = [(1.0 - cos_v * cos_v).sqrt(), 0.0, cos_v];
+    let b = BrdfSg::with_model(model, n, v, r);
+    let (fs, fa, fd) = b.lobe_factors_f0(n, LAMBDA_MIN);
+    (fs + (1.0 - F0) * fa, fd)
+}
+
+#[test]
+fn the_calibrated_brdf_keeps_a_full_reflectors_energy_and_attenuates_the_diffuse() {
+    use pii_bake::sg::shade::BrdfModel;
+    // Cycles' multiscatter GGX keeps a white reflector's energy at every roughness and view;
+    // the calibrated form does (to the constant lobe's 2e-4), PhySG's loses it as the lobe
+    // widens past the horizon (measured here: 0.73 at R = 0.9 seen at 60°).
+    for r in [0.05, 0.2, 0.5, 0.8, 1.0] {
+        for cos_v in [0.1, 0.4, 0.7, 1.0] {
+            let (e, _) = furnace(BrdfModel::Calibrated, r, cos_v);
+            assert!((e - 1.0).abs() < 2e-3, "calibrated furnace at R {r}, n·v {cos_v}: {e}");
+        }
+    }
+    let (rough_physg, d_physg) = furnace(BrdfModel::Physg, 0.9, 0.5);
+    assert!(rough_physg < 0.8, "PhySG's furnace at R 0.9: {rough_physg}");
+    assert!(furnace(BrdfModel::Physg, 0.9, 0.5).0 < furnace(BrdfModel::Physg, 0.3, 0.5).0, "PhySG loses more the rougher");
+    // The diffuse keeps what the dielectric specular layer does not reflect: 1 − E(F0) of
+    // PhySG's (which ignores it), E = F0·A + B the GGX lobe's directional albedo (Karis' fit):
+    // about F0 head-on, most at grazing on a smooth surface, little on a rough one.
+    use pii_bake::sg::shade::{env_brdf, F0};
+    let weight = |r: f64, cos_v: f64| furnace(BrdfModel::Calibrated, r, cos_v).1 / furnace(BrdfModel::Physg, r, cos_v).1;
+    for (r, cos_v) in [(0.1, 1.0), (0.5, 1.0), (0.9, 0.5), (0.1, 0.1), (0.5, 0.1)] {
+        let (a, b): (f64, f64) = env_brdf(r, cos_v);
+        let w = weight(r, cos_v);
+        assert!((w - (1.0 - (F0 * a + b))).abs() < 1e-9, "diffuse weight at R {r}, n·v {cos_v}: {w}");
+    }
+    assert!((weight(0.5, 1.0) - (1.0 - F0)).abs() < 0.02, "head-on: about 1 − F0");
+    assert!(weight(0.1, 0.1) < 0.5, "smooth, grazing: the specular layer takes most: {}", weight(0.1, 0.1));
+    assert!(weight(0.5, 0.1) > 0.8, "rough, grazing: it takes little: {}", weight(0.5, 0.1));
+    // The fit's end points: a mirror at grazing reflects everything, head-on F0.
+    let (a, b): (f64, f64) = env_brdf(0.0, 0.0);
+    assert!((a + b - 1.0).abs() < 0.05 && (F0 * a + b - 1.0).abs() < 0.06, "mirror at grazing: A {a}, B {b}");
+    let (a, b): (f64, f64) = env_brdf(0.0, 1.0);
+    assert!((F0 * a + b - F0).abs() < 0.01, "mirror head-on: {}", F0 * a + b);
+}

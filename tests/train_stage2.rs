@@ -162,49 +162,103 @@ fn metallic_gradient_matches_central_differences_and_old_runs_read_dielectric() 
 fn a_metal_tints_its_highlights_with_its_albedo_and_loses_its_diffuse() {
     use pii_bake::sg::shade::F0;
     use pii_bake::train::stage2::{shade_f64, PointShading};
-    let lobes = vec![Sg { axis: [0.2, 1.0, 0.3], lambda: 20.0, mu: [2.0, 2.0, 2.0] }, Sg { axis: [-0.5, 0.5, 0.1], lambda: 1.0, mu: [0.4, 0.4, 0.4] }];
-    let (n, v) = ([0.0, 1.0, 0.0], [0.3, 0.9, 0.2]);
-    let albedo = [0.9, 0.6, 0.2];
-    let rough = 0.3;
-    let (s0, d0) = shade_f64(albedo, rough, 0.0, n, v, &lobes);
-    let (s1, d1) = shade_f64(albedo, rough, 1.0, n, v, &lobes);
-    for c in 0..3 {
-        // A full metal: no diffuse; its specular scaled by albedo/F0 (a grey light: the highlight takes the albedo's colour).
-        assert_eq!(d1[c], 0.0);
-        assert!(s1[c] > s0[c] * 3.0, "channel {c}: {} vs {}", s1[c], s0[c]);
+    use pii_bake::sg::shade::BrdfModel;
+    // Both BRDF forms: the paper's and the one calibrated to Cycles.
+    for model in [BrdfModel::Physg, BrdfModel::Calibrated] {
+        let lobes = vec![Sg { axis: [0.2, 1.0, 0.3], lambda: 20.0, mu: [2.0, 2.0, 2.0] }, Sg { axis: [-0.5, 0.5, 0.1], lambda: 1.0, mu: [0.4, 0.4, 0.4] }];
+        let (n, v) = ([0.0, 1.0, 0.0], [0.3, 0.9, 0.2]);
+        let albedo = [0.9, 0.6, 0.2];
+        let rough = 0.3;
+        let (s0, d0) = shade_f64(model, albedo, rough, 0.0, n, v, &lobes);
+        let (s1, d1) = shade_f64(model, albedo, rough, 1.0, n, v, &lobes);
+        for c in 0..3 {
+            // A full metal: no diffuse; its specular scaled by albedo/F0 (a grey light: the highlight takes the albedo's colour).
+            assert_eq!(d1[c], 0.0);
+            assert!(s1[c] > s0[c] * 3.0, "channel {c}: {} vs {}", s1[c], s0[c]);
+        }
+        assert!(s1[0] > s1[1] && s1[1] > s1[2], "{s1:?}");
+        assert!(s0[0] == s0[1] && s0[1] == s0[2], "a dielectric's highlight is the light's colour: {s0:?}");
+        // Halfway: linear in m between the two.
+        let (sh, dh) = shade_f64(model, albedo, rough, 0.5, n, v, &lobes);
+        for c in 0..3 {
+            assert!((sh[c] - 0.5 * (s0[c] + s1[c])).abs() < 1e-12 && (dh[c] - 0.5 * d0[c]).abs() < 1e-12);
+        }
+        // The training's shading (duals) agrees and its metallic / albedo gradients are the
+        // central differences of the render.
+        let d_out = [0.7, -0.2, 0.4];
+        let m = 0.35;
+        let ps = PointShading::new(model, albedo, rough, m, n, v, &lobes);
+        let (ss, sd) = shade_f64(model, albedo, rough, m, n, v, &lobes);
+        for c in 0..3 {
+            assert!((ps.spec[c] - ss[c]).abs() < 1e-12 && (ps.diff[c] - sd[c]).abs() < 1e-12);
+        }
+        let (da, _, dm, _) = ps.grad(albedo, m, &lobes, d_out);
+        let f = |a: [f64; 3], m: f64| {
+            let (s, d) = shade_f64(model, a, rough, m, n, v, &lobes);
+            (0..3).map(|c| d_out[c] * (s[c] + d[c])).sum::<f64>()
+        };
+        let h = 1e-6;
+        let fd_m = (f(albedo, m + h) - f(albedo, m - h)) / (2.0 * h);
+        assert!((dm - fd_m).abs() <= 1e-6 * fd_m.abs().max(1.0), "d metallic {dm} vs {fd_m}");
+        for c in 0..3 {
+            let (mut p, mut q) = (albedo, albedo);
+            p[c] += h;
+            q[c] -= h;
+            let fd = (f(p, m) - f(q, m)) / (2.0 * h);
+            assert!((da[c] - fd).abs() <= 1e-6 * fd.abs().max(1.0), "d albedo {c}: {} vs {fd}", da[c]);
+        }
+        assert!(F0 < albedo[2], "the test's albedo is above F0 in every channel");
     }
-    assert!(s1[0] > s1[1] && s1[1] > s1[2], "{s1:?}");
-    assert!(s0[0] == s0[1] && s0[1] == s0[2], "a dielectric's highlight is the light's colour: {s0:?}");
-    // Halfway: linear in m between the two.
-    let (sh, dh) = shade_f64(albedo, rough, 0.5, n, v, &lobes);
-    for c in 0..3 {
-        assert!((sh[c] - 0.5 * (s0[c] + s1[c])).abs() < 1e-12 && (dh[c] - 0.5 * d0[c]).abs() < 1e-12);
-    }
-    // The training's shading (duals) agrees and its metallic / albedo gradients are the
-    // central differences of the render.
-    let d_out = [0.7, -0.2, 0.4];
-    let m = 0.35;
-    let ps = PointShading::new(albedo, rough, m, n, v, &lobes);
-    let (ss, sd) = shade_f64(albedo, rough, m, n, v, &lobes);
-    for c in 0..3 {
-        assert!((ps.spec[c] - ss[c]).abs() < 1e-12 && (ps.diff[c] - sd[c]).abs() < 1e-12);
-    }
-    let (da, _, dm, _) = ps.grad(albedo, m, &lobes, d_out);
-    let f = |a: [f64; 3], m: f64| {
-        let (s, d) = shade_f64(a, rough, m, n, v, &lobes);
-        (0..3).map(|c| d_out[c] * (s[c] + d[c])).sum::<f64>()
-    };
+}
+
+#[test]
+fn roughness_light_and_normal_gradients_match_central_differences_in_both_brdf_forms() {
+    use pii_bake::sg::shade::BrdfModel;
+    use pii_bake::train::stage2::{shade_f64, shade_normal_grad, PointShading};
+    let lobes = vec![
+        Sg { axis: [0.2, 1.0, 0.3], lambda: 12.0, mu: [1.5, 1.2, 0.9] },
+        Sg { axis: [-0.6, 0.5, 0.1], lambda: 2.0, mu: [0.4, 0.5, 0.6] },
+        Sg { axis: [0.5, 0.3, -0.4], lambda: 40.0, mu: [0.8, 0.8, 0.8] },
+    ];
+    let (n, v) = ([0.05, 1.0, 0.1], [0.35, 0.85, 0.25]);
+    let (albedo, m) = ([0.7, 0.5, 0.3], 0.4);
+    let d_out = [0.6, -0.3, 0.5];
     let h = 1e-6;
-    let fd_m = (f(albedo, m + h) - f(albedo, m - h)) / (2.0 * h);
-    assert!((dm - fd_m).abs() <= 1e-6 * fd_m.abs().max(1.0), "d metallic {dm} vs {fd_m}");
-    for c in 0..3 {
-        let (mut p, mut q) = (albedo, albedo);
-        p[c] += h;
-        q[c] -= h;
-        let fd = (f(p, m) - f(q, m)) / (2.0 * h);
-        assert!((da[c] - fd).abs() <= 1e-6 * fd.abs().max(1.0), "d albedo {c}: {} vs {fd}", da[c]);
+    let close = |a: f64, b: f64, what: &str| assert!((a - b).abs() <= 1e-5 * b.abs().max(1e-2), "{what}: {a} vs central differences {b}");
+    for model in [BrdfModel::Physg, BrdfModel::Calibrated] {
+        for rough in [0.15, 0.45, 0.85] {
+            let f = |r: f64, n: [f64; 3], l: &[Sg<f64>]| {
+                let (s, d) = shade_f64(model, albedo, r, m, n, v, l);
+                (0..3).map(|c| d_out[c] * (s[c].max(0.0) + d[c].max(0.0))).sum::<f64>()
+            };
+            let ps = PointShading::new(model, albedo, rough, m, n, v, &lobes);
+            let (_, dr, _, dl) = ps.grad(albedo, m, &lobes, d_out);
+            close(dr, (f(rough + h, n, &lobes) - f(rough - h, n, &lobes)) / (2.0 * h), &format!("{model:?} R {rough}: d roughness"));
+            for (k, g) in dl.iter().enumerate() {
+                // Axis (3), sharpness, amplitude (3).
+                for p in 0..7 {
+                    let bump = |e: f64| {
+                        let mut l = lobes.clone();
+                        match p {
+                            0..=2 => l[k].axis[p] += e,
+                            3 => l[k].lambda += e,
+                            _ => l[k].mu[p - 4] += e,
+                        }
+                        f(rough, n, &l)
+                    };
+                    close(g[p], (bump(h) - bump(-h)) / (2.0 * h), &format!("{model:?} R {rough}: lobe {k} parameter {p}"));
+                }
+            }
+            let (spec, diff) = shade_f64(model, albedo, rough, m, n, v, &lobes);
+            let dn = shade_normal_grad(model, albedo, rough, m, n, v, &lobes, spec, diff, d_out);
+            for a in 0..3 {
+                let (mut p, mut q) = (n, n);
+                p[a] += h;
+                q[a] -= h;
+                close(dn[a], (f(rough, p, &lobes) - f(rough, q, &lobes)) / (2.0 * h), &format!("{model:?} R {rough}: d normal {a}"));
+            }
+        }
     }
-    assert!(F0 < albedo[2], "the test's albedo is above F0 in every channel");
 }
 
 #[test]
@@ -865,7 +919,7 @@ fn wgpu_matches_cpu_on_the_refined_geometry_gradient() {
 
 #[test]
 fn training_and_rendering_shade_alike_and_match_the_per_lobe_closed_form() {
-    use pii_bake::sg::shade::{lobe_contribution, Surface};
+    use pii_bake::sg::shade::{lobe_contribution, BrdfModel, Surface};
     use pii_bake::train::stage2::{shade_f64, PointShading};
     // Lobes above, across and below the horizon, broad to sharp, unnormalised axes.
     let lobes: Vec<Sg<f64>> = [([0.2, 0.9, 0.1], 0.5), ([1.0, 0.1, 0.0], 8.0), ([0.0, -1.0, 0.3], 30.0), ([0.3, 0.5, 0.8], 200.0), ([-0.4, 0.2, -0.9], 2.0)]
@@ -877,7 +931,7 @@ fn training_and_rendering_shade_alike_and_match_the_per_lobe_closed_form() {
     // Roughness below the clamp, mid and rough; a frontal and a grazing view.
     for (rough, v) in [(0.005, [0.3, 0.8, 0.2]), (0.35, [0.3, 0.8, 0.2]), (1.0, [0.9, 0.05, -0.4]), (0.6, [0.95, 0.02, 0.1])] {
         let albedo = [0.8, 0.45, 0.1];
-        let ps = PointShading::new(albedo, rough, 0.0, n, v, &lobes);
+        let ps = PointShading::new(BrdfModel::Physg, albedo, rough, 0.0, n, v, &lobes);
         // The training's sums (duals) against the renderer's (f64) and the per-lobe closed form:
         // the same formula, so they differ only by f64 rounding (a dual divides by multiplying).
         let s = Surface { albedo, roughness: rough, normal: n, view: v };
@@ -889,7 +943,7 @@ fn training_and_rendering_shade_alike_and_match_the_per_lobe_closed_form() {
                 diff[c] += df[c];
             }
         }
-        let (rs, rd) = shade_f64(albedo, rough, 0.0, n, v, &lobes);
+        let (rs, rd) = shade_f64(BrdfModel::Physg, albedo, rough, 0.0, n, v, &lobes);
         for (what, a, b) in [("training", ps.spec, ps.diff), ("rendering", rs, rd)] {
             for c in 0..3 {
                 assert!((a[c] - spec[c]).abs() <= 1e-12 * spec[c].abs().max(1e-3), "{what} spec {c} at R {rough}: {} vs {}", a[c], spec[c]);

@@ -74,6 +74,8 @@ pub enum BenchCommand {
     Nn(crate::nn::bench::BenchNnArgs),
     /// Environment SG fitting: lobes vs error vs time, with a chart.
     Env(crate::sg::bench::BenchEnvArgs),
+    /// The SG BRDF forms against Cycles' Principled BSDF on a sphere (needs Python with bpy), with a chart.
+    Brdf(crate::sg::bench_brdf::BenchBrdfArgs),
     /// Stage-1 training: Chamfer against wall time per variant (preset × tracing × init), with a chart.
     Train(crate::train::bench::BenchTrainArgs),
     /// Stage-2 training on a stage-1 run: accuracy against wall time per variant (lobes × indirect), with a chart.
@@ -145,6 +147,7 @@ pub fn run(cmd: &Command, ctx: &Context) -> anyhow::Result<()> {
         Command::Relight(a) => crate::train::relight::run(a, ctx),
         Command::Bench(BenchCommand::Nn(a)) => crate::nn::bench::run(a, ctx),
         Command::Bench(BenchCommand::Env(a)) => crate::sg::bench::run(a, ctx),
+        Command::Bench(BenchCommand::Brdf(a)) => crate::sg::bench_brdf::run(a, ctx),
         Command::Bench(BenchCommand::Export(a)) => crate::export::bench::run(a, ctx),
         Command::Bench(BenchCommand::Train(a)) => crate::train::bench::run(a, ctx),
         Command::Bench(BenchCommand::Material(a)) => crate::train::bench_material::run(a, ctx),

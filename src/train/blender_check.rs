@@ -93,7 +93,7 @@ fn write_reference(view: &View, path: &Path) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn python() -> String {
+pub(crate) fn python() -> String {
     std::env::var("PII_PYTHON").unwrap_or_else(|_| "python3".to_string())
 }
 

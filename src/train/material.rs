@@ -22,7 +22,7 @@ use crate::mesh::field::{MaterialField, MaterialSamples};
 use crate::render::{trace, Rays, TraceConfig};
 use crate::scene::{Camera, Downscale, Format, ReadOptions, View};
 use crate::sg::env::LatlongConvention;
-use crate::sg::shade::Sg;
+use crate::sg::shade::{BrdfModel, Sg};
 use crate::util::DataError;
 
 /// Stage-2 options shared by `train --stage material` and `bake`.
@@ -49,6 +49,10 @@ pub struct MaterialOptions {
     /// and it has no diffuse), `on` by default; `off` models dielectrics only (the paper's).
     #[arg(long, value_enum, default_value_t = MetallicMode::On)]
     pub metallic: MetallicMode,
+    /// The BRDF's SG form: `calibrated` (the default: matched to Cycles' Principled BSDF, which
+    /// renders the asset in Blender) or `physg` (the paper's, PhySG's closed form). See `BrdfModel`.
+    #[arg(long, value_enum, default_value_t = BrdfModel::Calibrated)]
+    pub brdf: BrdfModel,
     /// Boundary lights (secondary hits that graze the occluder): `flowing` passes their gradient to
     /// the light (ours), `detached` keeps them in the colour without gradient (the public code).
     #[arg(long, value_enum, default_value_t = BoundaryMode::Flowing)]
@@ -105,7 +109,7 @@ pub struct KnownEnv {
 
 impl Default for MaterialOptions {
     fn default() -> Self {
-        Self { lobes: None, indirect: IndirectMode::Ours, decoder: None, roughness: RoughnessMode::Field, metallic: MetallicMode::On, boundary: BoundaryMode::Flowing, refine_geometry: false, material_iterations: None, material_batch: None, material_set: Vec::new(), known_env: KnownEnv::default() }
+        Self { lobes: None, indirect: IndirectMode::Ours, decoder: None, roughness: RoughnessMode::Field, metallic: MetallicMode::On, brdf: BrdfModel::Calibrated, boundary: BoundaryMode::Flowing, refine_geometry: false, material_iterations: None, material_batch: None, material_set: Vec::new(), known_env: KnownEnv::default() }
     }
 }
 
@@ -253,6 +257,7 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &s
     let synthetic = matches!(format, Format::Transforms);
     cfg.decoder = opts.decoder.unwrap_or(if synthetic { DecoderMode::Separate } else { DecoderMode::Shared });
     cfg.metallic = opts.metallic == MetallicMode::On;
+    cfg.brdf = opts.brdf;
     if let Some(k) = opts.lobes {
         cfg.lobes = k;
     }
@@ -274,6 +279,10 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &s
         "metallic": match opts.metallic {
             MetallicMode::On => "on (the default): a metal's highlights take its albedo's colour; `--metallic off` models dielectrics only",
             MetallicMode::Off => "off (`--metallic off`): dielectrics only",
+        },
+        "brdf": match opts.brdf {
+            BrdfModel::Calibrated => "calibrated (the default): the SG BRDF matched to Cycles' Principled BSDF; `--brdf physg` is the paper's",
+            BrdfModel::Physg => "physg (`--brdf physg`): the paper's SG BRDF (PhySG's closed form)",
         },
         "decoder": if opts.decoder.is_some() { "forced by --decoder".to_string() } else if synthetic { "separate: a synthetic (transforms.json) scene".to_string() } else { "shared: a real capture (supplementary §5.2)".to_string() },
         "points": format!("min(preset cap, {} masked training pixels)", data.foreground_pixels()),
@@ -781,7 +790,7 @@ fn relight_points(backend: &Backend, sdf: &Stage1Model, model: &Stage2Model, c: 
             let j = owner[h].1;
             let v = super::stage2::unit_f32(lobes[j].axis).map(|x| -x as f64);
             let (a, r, m) = hm.at(h);
-            let (sp, df) = shade_f64(a, r, m, hn[h].map(f64::from), v, lobes);
+            let (sp, df) = shade_f64(cfg.brdf, a, r, m, hn[h].map(f64::from), v, lobes);
             [0, 1, 2].map(|ch| (sp[ch].max(0.0) + df[ch].max(0.0)) as f32)
         })
         .collect();
@@ -797,7 +806,7 @@ fn relight_points(backend: &Backend, sdf: &Stage1Model, model: &Stage2Model, c: 
                 li[j] = Sg { axis: lobes[j].axis, lambda: lobes[j].lambda, mu: l.map(f64::from) };
             }
             let (a, r, m) = mats.at(i);
-            let (sp, df) = shade_f64(a, r, m, c.n[i].map(f64::from), c.v[i].map(f64::from), &li);
+            let (sp, df) = shade_f64(cfg.brdf, a, r, m, c.n[i].map(f64::from), c.v[i].map(f64::from), &li);
             [0, 1, 2].map(|ch| (sp[ch].max(0.0) + df[ch].max(0.0)) as f32)
         })
         .collect())

@@ -55,7 +55,7 @@ use crate::nn::params::ParamStore;
 use crate::render::grid::SdfGrid;
 use crate::render::{trace, trace_secondary, Rays, TraceConfig};
 use crate::sg::env::{EnvSgs, SgLobe};
-use crate::sg::shade::{normalize, sg_eval, BrdfSg, Dual, Sg, F0, LAMBDA_MIN, R_MIN};
+use crate::sg::shade::{normalize, sg_eval, BrdfModel, BrdfSg, Dual, Sg, F0, LAMBDA_MIN, R_MIN};
 use crate::util::DataError;
 
 /// How light blocked by the object itself is modelled.
@@ -282,6 +282,10 @@ pub struct Stage2Config {
     /// Run files without the field read false (dielectric) and resume as they ran.
     #[serde(default)]
     pub metallic: bool,
+    /// The SG form of the BRDF ([`BrdfModel`]). Run files without the field read `physg` (the
+    /// form they were trained with) and resume as they ran.
+    #[serde(default)]
+    pub brdf: BrdfModel,
 }
 
 impl Stage2Config {
@@ -402,6 +406,7 @@ impl Stage2Config {
             log_amplitude: false,
             unit_axes: true,
             metallic: false,
+            brdf: BrdfModel::Physg,
         }
     }
 
@@ -1097,8 +1102,8 @@ fn metal_weights(albedo: [f64; 3], metal: f64) -> ([f64; 3], [f64; 3]) {
 /// [`crate::sg::shade::lobe_contribution`] before their clamps, the BRDF's side formed once
 /// ([`BrdfSg`]); with `metal` > 0 the reflectance is `mix(F0, albedo, metal)` and the diffuse
 /// term scaled by `1 − metal` ([`Stage2Config::metallic`]).
-pub fn shade_f64(albedo: [f64; 3], rough: f64, metal: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>]) -> ([f64; 3], [f64; 3]) {
-    let brdf = BrdfSg::new(n, v, rough);
+pub fn shade_f64(model: BrdfModel, albedo: [f64; 3], rough: f64, metal: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>]) -> ([f64; 3], [f64; 3]) {
+    let brdf = BrdfSg::with_model(model, n, v, rough);
     let (ks, kd) = metal_weights(albedo, metal);
     let mut spec = [0.0; 3];
     let mut diff = [0.0; 3];
@@ -1127,10 +1132,10 @@ pub struct PointShading {
 pub type ShadingGrad = ([f64; 3], f64, f64, Vec<[f64; 7]>);
 
 impl PointShading {
-    pub fn new(albedo: [f64; 3], rough: f64, metal: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>]) -> Self {
+    pub fn new(model: BrdfModel, albedo: [f64; 3], rough: f64, metal: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>]) -> Self {
         type D = Dual<5>;
         let cst = |x: f64| D { v: x, d: [0.0; 5] };
-        let brdf = BrdfSg::new(n.map(cst), v.map(cst), D::var(rough, 0));
+        let brdf = BrdfSg::with_model(model, n.map(cst), v.map(cst), D::var(rough, 0));
         let (ks, kd) = metal_weights(albedo, metal);
         let mut out = Self { spec: [0.0; 3], diff: [0.0; 3], factors: Vec::with_capacity(lobes.len()) };
         for l in lobes {
@@ -1178,13 +1183,13 @@ impl PointShading {
 /// Gradient of `Σ_c d_out_c · L_c` for one point with respect to the shading normal (the
 /// geometry refinement's path; masks as [`PointShading::grad`]).
 #[allow(clippy::too_many_arguments)]
-pub fn shade_normal_grad(albedo: [f64; 3], rough: f64, metal: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>], spec: [f64; 3], diff: [f64; 3], d_out: [f64; 3]) -> [f64; 3] {
+pub fn shade_normal_grad(model: BrdfModel, albedo: [f64; 3], rough: f64, metal: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>], spec: [f64; 3], diff: [f64; 3], d_out: [f64; 3]) -> [f64; 3] {
     let ws = [0, 1, 2].map(|c| if spec[c] > 0.0 { d_out[c] } else { 0.0 });
     let wd = [0, 1, 2].map(|c| if diff[c] > 0.0 { d_out[c] } else { 0.0 });
     type D = Dual<3>;
     let cst = |x: f64| D { v: x, d: [0.0; 3] };
     // The BRDF's side once per point (as `PointShading`), the normal's tangents through it.
-    let brdf = BrdfSg::new([D::var(n[0], 0), D::var(n[1], 1), D::var(n[2], 2)], v.map(cst), cst(rough));
+    let brdf = BrdfSg::with_model(model, [D::var(n[0], 0), D::var(n[1], 1), D::var(n[2], 2)], v.map(cst), cst(rough));
     let (ks, kd) = metal_weights(albedo, metal);
     let mut dn = [0.0; 3];
     for l in lobes {
@@ -1341,6 +1346,7 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
     // Indirect slots: every (point, blocked lobe) of the batch.
     let lobes = model.lobes();
     let mode = model.cfg.indirect;
+    let brdf = model.cfg.brdf;
     let mut slot_of: Vec<Vec<(usize, usize)>> = vec![Vec::new(); b];
     let (mut hx, mut hn) = (Vec::new(), Vec::new());
     if mode != IndirectMode::None {
@@ -1399,7 +1405,7 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
             let a = [mat[MAT * i] as f64, mat[MAT * i + 1] as f64, mat[MAT * i + 2] as f64];
             let (r, m) = (mat[MAT * i + 3] as f64, mat[MAT * i + 4] as f64);
             let (n, v) = (f64x3(batch.n[i]), f64x3(batch.v[i]));
-            let shading = PointShading::new(a, r, m, n, v, &li);
+            let shading = PointShading::new(brdf, a, r, m, n, v, &li);
             let (spec, diff) = (shading.spec, shading.diff);
             let mut rgb = [0.0; 3];
             let mut d_out = [0.0; 3];
@@ -1413,7 +1419,7 @@ pub fn loss_and_grad_with(backend: &Backend, model: &Stage2Model, batch: &Stage2
                 d_out[c] = e.signum() * inv3b * de;
             }
             let (da, dr, dm, dl) = shading.grad(a, m, &li, d_out);
-            let dn = if geometry { shade_normal_grad(a, r, m, n, v, &li, spec, diff, d_out) } else { [0.0; 3] };
+            let dn = if geometry { shade_normal_grad(brdf, a, r, m, n, v, &li, spec, diff, d_out) } else { [0.0; 3] };
             let (fit, d_fit) = match (mii_fwd.is_some(), batch.mii_targets.get(i)) {
                 (true, Some(t)) => mii_fit(&mii_sgs[i], t, fit_scale),
                 _ => (0.0, Vec::new()),
@@ -2282,7 +2288,7 @@ fn render_points_f64(backend: &Backend, model: &Stage2Model, batch: &Stage2Batch
         .map(|i| {
             let li = point_lobes(model.cfg.indirect, &lobes, &per[i], &mix, &mii[i], &vis);
             let (a, r, m) = mat.at(i);
-            let (sp, df) = shade_f64(a, r, m, f64x3(batch.n[i]), f64x3(batch.v[i]), &li);
+            let (sp, df) = shade_f64(model.cfg.brdf, a, r, m, f64x3(batch.n[i]), f64x3(batch.v[i]), &li);
             [0, 1, 2].map(|c| sp[c].max(0.0) + df[c].max(0.0))
         })
         .collect())
