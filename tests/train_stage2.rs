@@ -155,7 +155,10 @@ fn metallic_gradient_matches_central_differences_and_old_runs_read_dielectric() 
     assert!(Stage2Model::new(&off).unwrap().material(&b, &batch().x).unwrap().metallic.iter().all(|&m| m == 0.0));
     let mut v = serde_json::to_value(&off).unwrap();
     v.as_object_mut().unwrap().remove("metallic");
-    assert!(!serde_json::from_value::<Stage2Config>(v).unwrap().metallic);
+    assert!(!serde_json::from_value::<Stage2Config>(v.clone()).unwrap().metallic);
+    // Runs from before the calibrated BRDF read (and resume) with the form they were trained with.
+    v.as_object_mut().unwrap().remove("brdf");
+    assert_eq!(serde_json::from_value::<Stage2Config>(v).unwrap().brdf, pii_bake::sg::shade::BrdfModel::Physg);
 }
 
 #[test]

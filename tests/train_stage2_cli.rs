@@ -149,10 +149,10 @@ fn stage_two_resumes_exactly_exports_and_relights() {
 fn a_metallic_run_trains_exports_its_metallic_texture_and_relights_its_view() {
     let dir = tempfile::tempdir().unwrap();
     // Both stages and the export at test size: (the run, its stage-2 report, the asset folder).
-    let train_export = |name: &str, metallic: &str| {
+    let train_export = |name: &str, metallic: &str, brdf: &[&str]| {
         let run = dir.path().join(name);
         stage1(&run);
-        let o = stage2(&run, &["--material-iterations", "4", "--metallic", metallic]);
+        let o = stage2(&run, &[&["--material-iterations", "4", "--metallic", metallic], brdf].concat());
         assert!(o.status.success(), "{}", text(&o));
         let report: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("material_report.json")).unwrap()).unwrap();
         let asset = dir.path().join(format!("{name}_asset"));
@@ -160,8 +160,10 @@ fn a_metallic_run_trains_exports_its_metallic_texture_and_relights_its_view() {
         assert!(o.status.success(), "{}", text(&o));
         (run, report, asset)
     };
-    let (run, report, asset) = train_export("on", "on");
+    let (run, report, asset) = train_export("on", "on", &[]);
     assert_eq!(report["config"]["metallic"], true);
+    assert_eq!(report["config"]["brdf"], "calibrated", "the calibrated BRDF by default");
+    assert!(report["sizes"]["why"]["brdf"].as_str().unwrap().contains("--brdf physg"), "{}", report["sizes"]["why"]);
     assert!(report["sizes"]["why"]["metallic"].as_str().unwrap().contains("--metallic off"), "{}", report["sizes"]["why"]);
     let m = &report["material"]["metallic"];
     assert!(m["mean"].as_f64().unwrap() > 0.2 && m["mean"].as_f64().unwrap() < 0.8, "starts at 0.5, neither metal nor dielectric: {m}");
@@ -175,9 +177,11 @@ fn a_metallic_run_trains_exports_its_metallic_texture_and_relights_its_view() {
     let o = pii(&["relight", run.to_str().unwrap(), "--env", env.to_str().unwrap(), "--lobes", "8", "--max-views", "1", "--downscale", "4", "--out", rel.to_str().unwrap()]);
     assert!(o.status.success(), "{}", text(&o));
     assert!(rel.join("test/r_000_metallic.png").is_file(), "{}", text(&o));
-    // `--metallic off`: four material channels, a dielectric asset, no metallic view.
-    let (_, report, asset) = train_export("off", "off");
+    // `--metallic off`: four material channels, a dielectric asset, no metallic view; with the
+    // paper's BRDF (`--brdf physg`) recorded in the run.
+    let (_, report, asset) = train_export("off", "off", &["--brdf", "physg"]);
     assert_eq!(report["config"]["metallic"], false);
+    assert_eq!(report["config"]["brdf"], "physg");
     assert!(report["material"]["metallic"].is_null());
     let orm = image::open(asset.join("textures/orm.png")).unwrap().to_rgb8();
     assert!(orm.pixels().all(|p| p[2] == 0), "a dielectric asset's ORM B is 0");
