@@ -326,14 +326,20 @@ pub fn lobe_factors<S: Scalar>(normal: V3<S>, view: V3<S>, roughness: S, axis: V
 
 /// Which SG form of the GGX BRDF shades a point.
 ///
-/// Measured against Cycles' Principled BSDF (multiscatter GGX, what `make_scene.py` renders the
-/// ground truth with and what Blender renders the asset with): a unit sphere under the same
-/// SG-fitted environment (courtyard, envmap6), Cycles vs this shading at the true roughness
-/// (`pii-bake bench brdf`). PhySG's form loses the rough metals' energy (the lobe is clipped by the
-/// horizon and its masking is the direct-light `k = (R+1)²/8`): 0.39 of Cycles' radiance at
-/// R = 0.9, 0.85 at R = 0.3, and it fits best at a roughness 0.06–0.1 above the true one. The
-/// calibrated form brings metals from 12–30 dB to 24–38 dB at the true roughness and
-/// dielectrics from 36.7–42.7 dB to 40.6–42.7 dB.
+/// Measured against Cycles' Principled BSDF (multiscatter GGX: what `make_scene.py` renders the
+/// ground truth with and what Blender renders the asset with) by `pii-bake bench brdf`: a unit
+/// sphere (base colour 0.8, 0.6, 0.4) under the SG re-render of the courtyard and envmap6 maps,
+/// Cycles against each form under the same 128 lobes, PSNR at the true roughness R = 0.1…0.9.
+/// PhySG's form loses a rough metal's energy (its lobe is clipped by the horizon and its masking
+/// is the direct-light `k = (R+1)²/8`): 0.42–0.43 of Cycles' radiance at R = 0.9, 0.77–0.84 at
+/// R = 0.3, and it fits best 0.05–0.1 rougher than the truth; metals 14.1–28.8 dB. The calibrated
+/// form: metals 20.7–37.1 dB with the best fit at the true roughness from R = 0.2 to 0.7 (energy
+/// 0.99–1.05 up to R = 0.5, overshooting to 1.32 at 0.9 on this coloured metal: its reflectance
+/// is linear in F0, multiscatter's is not); dielectrics 37.1–42.5 dB against 33.3–41.6.
+///
+/// In training the calibrated form is not the default: a rough surface keeps its specular energy,
+/// which stage 2 can use as a grey near-diffuse layer: it drives the bowl's roughness to 1 and
+/// learns the Ethiopian head's bronze as mostly dielectric under a tinted light.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum BrdfModel {
@@ -349,9 +355,9 @@ pub enum BrdfModel {
     Calibrated,
 }
 
-/// D's SG width in [`BrdfModel::Calibrated`], as a multiple of α: measured with
-/// `bench brdf` (best-fit SG roughness equal to the true one at 1.2 on envmap6 and 1.5 on the
-/// courtyard map, from R = 0.1 to 0.8; 1.35 between them).
+/// D's SG width in [`BrdfModel::Calibrated`], as a multiple of α: on the `bench brdf` spheres
+/// (metal, before the energy terms were final) the best-fit SG roughness equalled the true one
+/// from R = 0.1 to 0.8 at 1.2 on envmap6 and 1.5 on the courtyard map; 1.35 is between them.
 pub const CALIBRATED_ALPHA_SCALE: f64 = 1.35;
 
 /// The GGX lobe's directional albedo with Schlick's Fresnel, `E(F0) = F0·A + B`, as Karis'
@@ -377,7 +383,8 @@ pub struct BrdfSg<S> {
     /// The amplitude's derivative in F0 (Fresnel `F0 + (1 − F0)·f` is linear in F0): what a
     /// metallic surface's `F0 = mix(0.04, albedo, m)` scales ([`BrdfSg::lobe_factors_f0`]).
     amplitude_f0: S,
-    /// The diffuse factor's weight: 1, or `1 − F` ([`BrdfModel::Calibrated`]).
+    /// The diffuse factor's weight: 1, or `1 − (F0·A + B)`, what the dielectric specular layer
+    /// leaves ([`BrdfModel::Calibrated`], [`env_brdf`]).
     diffuse_weight: S,
 }
 
