@@ -18,7 +18,8 @@ use rayon::prelude::*;
 
 use crate::context::Context;
 use crate::sg::env::{write_latlong_exr, EnvSgs, LatlongConvention, SgLobe};
-use crate::sg::shade::{BrdfModel, BrdfSg, Sg, F0};
+use crate::sg::shade::{BrdfModel, Sg};
+use crate::train::stage2::shade_f64;
 use crate::util::atomic_write;
 
 const SCRIPT: &str = include_str!("../../scripts/brdf_spheres.py");
@@ -103,17 +104,10 @@ fn sphere_pixels(path: &Path) -> anyhow::Result<Vec<Pixel>> {
     Ok(out)
 }
 
-/// Outgoing radiance of a sphere pixel (view along +Z of our frame) under `lobes`.
+/// Outgoing radiance of a sphere pixel (view along +Z of our frame) under `lobes`: stage 2's
+/// shading ([`shade_f64`]) with its clamps.
 fn shade(model: BrdfModel, base: [f64; 3], rough: f64, metal: f64, n: [f64; 3], lobes: &[Sg<f64>]) -> [f64; 3] {
-    let brdf = BrdfSg::with_model(model, n, [0.0, 0.0, 1.0], rough);
-    let (mut spec, mut diff) = ([0.0; 3], [0.0; 3]);
-    for l in lobes {
-        let (fs, fa, fd) = brdf.lobe_factors_f0(l.axis, l.lambda);
-        for c in 0..3 {
-            spec[c] += l.mu[c] * (fs + metal * (base[c] - F0) * fa);
-            diff[c] += l.mu[c] * (1.0 - metal) * base[c] / std::f64::consts::PI * fd;
-        }
-    }
+    let (spec, diff) = shade_f64(model, base, rough, metal, n, [0.0, 0.0, 1.0], lobes);
     [0, 1, 2].map(|c| spec[c].max(0.0) + diff[c].max(0.0))
 }
 
@@ -204,8 +198,8 @@ fn chart(rows: &[BrdfRow]) -> anyhow::Result<String> {
     let e = |e: &dyn std::fmt::Display| anyhow::anyhow!("chart: {e}");
     let ymin = rows.iter().map(|r| r.psnr_true_roughness).fold(f64::INFINITY, f64::min).min(30.0) - 2.0;
     let ymax = rows.iter().map(|r| r.psnr_true_roughness).fold(f64::NEG_INFINITY, f64::max).max(ymin + 5.0) + 2.0;
+    // One series per (map, model, metallic).
     let mut keys: Vec<(String, BrdfModel, u64)> = rows.iter().map(|r| (r.map.clone(), r.model, r.metallic.to_bits())).collect();
-    keys.dedup();
     keys.sort_by(|a, b| (a.0.as_str(), a.1 as u8, a.2).cmp(&(b.0.as_str(), b.1 as u8, b.2)));
     keys.dedup();
     let mut svg = String::new();

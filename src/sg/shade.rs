@@ -408,10 +408,6 @@ impl<S: Scalar> BrdfSg<S> {
         let w = normalize(w);
         let lam_w = S::c(2.0) * inv_a2 / (S::c(4.0) * vn + S::c(TINY));
         let mu_d = inv_a2 * S::c(1.0 / PI);
-        let h = normalize(add(w, v));
-        let vh = dot(v, h).max_c(0.0);
-        let schlick = (-(S::c(5.55473) * vh + S::c(6.8316)) * vh).exp2();
-        let fresnel = S::c(F0) + S::c(1.0 - F0) * schlick;
         let d1 = dot(w, n).max_c(0.0);
         let d2 = vn;
         let (g1, g2) = if calibrated {
@@ -425,6 +421,11 @@ impl<S: Scalar> BrdfSg<S> {
         };
         let dg = mu_d * g1 * g2 / (S::c(4.0) * d1 * d2 + S::c(TINY));
         if !calibrated {
+            // Fresnel at the lobe's axis (the calibrated form takes it from `env_brdf` instead).
+            let h = normalize(add(w, v));
+            let vh = dot(v, h).max_c(0.0);
+            let schlick = (-(S::c(5.55473) * vh + S::c(6.8316)) * vh).exp2();
+            let fresnel = S::c(F0) + S::c(1.0 - F0) * schlick;
             return BrdfSg { n, axis: w, lambda: lam_w, amplitude: fresnel * dg, amplitude_f0: (S::c(1.0) - schlick) * dg, diffuse_weight: S::c(1.0) };
         }
         // White furnace: the lobe without Fresnel under a constant unit environment (an SG of
