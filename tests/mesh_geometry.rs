@@ -403,3 +403,21 @@ fn separate_parts_are_kept_and_specks_dropped() {
     assert!(res.mesh.positions.iter().all(|p| near(body.0, body.1, *p) || near(part.0, part.1, *p)), "a speck vertex survived");
     topology::check_closed(&res.mesh).unwrap();
 }
+
+#[test]
+fn a_face_tolerance_bounds_every_face_against_the_surface_normal() {
+    // `--face-tolerance`: no face of the simplified mesh leans further than the limit from the
+    // field's gradient at its samples; the mesh keeps more triangles for it and stays closed.
+    let backend = Backend::cpu();
+    let sdf = AnalyticSdf::new(AnalyticShape::Torus);
+    let cfg = MeshConfig { resolution: 64, error_bound: None, ..Default::default() };
+    let free = build_mesh(&backend, &sdf, &cfg).unwrap();
+    let free_dev = pii_bake::mesh::surface_deviation(&backend, &sdf, &free.mesh).unwrap();
+    let tight = build_mesh(&backend, &sdf, &MeshConfig { face_tolerance_deg: 8.0, ..cfg.clone() }).unwrap();
+    let dev = pii_bake::mesh::surface_deviation(&backend, &sdf, &tight.mesh).unwrap();
+    topology::check_closed(&tight.mesh).unwrap();
+    assert!(free_dev.face_angle_deg > 8.0, "the test needs a free mesh that leans further: {free_dev:?}");
+    assert!(dev.face_angle_deg <= 8.0 + 1e-3, "{dev:?}");
+    assert!(tight.stats.triangles > free.stats.triangles, "{} vs {}", tight.stats.triangles, free.stats.triangles);
+    assert!(dev.distance <= free_dev.distance.max(tight.stats.error_bound) + 1e-6, "{dev:?}");
+}

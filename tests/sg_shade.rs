@@ -334,8 +334,8 @@ fn furnace(model: pii_bake::sg::shade::BrdfModel, r: f64, cos_v: f64) -> (f64, f
     let n = [0.0, 0.0, 1.0];
     let v = [(1.0 - cos_v * cos_v).sqrt(), 0.0, cos_v];
     let b = BrdfSg::with_model(model, n, v, r);
-    let (fs, fa, fd) = b.lobe_factors_f0(n, LAMBDA_MIN);
-    (fs + (1.0 - F0) * fa, fd)
+    let (fs, fe, fd) = b.lobe_factors_f0(n, LAMBDA_MIN);
+    (fs + (b.energy(1.0) - b.energy(F0)) * fe, fd)
 }
 
 #[test]
@@ -354,14 +354,18 @@ fn the_calibrated_brdf_keeps_a_full_reflectors_energy_and_attenuates_the_diffuse
     assert!(rough_physg < 0.8, "PhySG's furnace at R 0.9: {rough_physg}");
     assert!(furnace(BrdfModel::Physg, 0.9, 0.5).0 < furnace(BrdfModel::Physg, 0.3, 0.5).0, "PhySG loses more the rougher");
     // The diffuse keeps what the dielectric specular layer does not reflect: 1 − E(F0) of
-    // PhySG's (which ignores it), E = F0·A + B the GGX lobe's directional albedo (Karis' fit):
-    // about F0 head-on, most at grazing on a smooth surface, little on a rough one.
-    use pii_bake::sg::shade::{env_brdf, F0};
+    // PhySG's (which ignores it), E the energy Cycles' GGX reflects (`ggx_energy`: the lobe's
+    // directional albedo F0·A + B of Karis' fit, with multiple scattering): about F0 head-on,
+    // most at grazing on a smooth surface, little on a rough one.
+    use pii_bake::sg::shade::{env_brdf, ggx_energy, F0};
     let weight = |r: f64, cos_v: f64| furnace(BrdfModel::Calibrated, r, cos_v).1 / furnace(BrdfModel::Physg, r, cos_v).1;
     for (r, cos_v) in [(0.1, 1.0), (0.5, 1.0), (0.9, 0.5), (0.1, 0.1), (0.5, 0.1)] {
         let (a, b): (f64, f64) = env_brdf(r, cos_v);
+        let e = ggx_energy(r, cos_v, F0);
         let w = weight(r, cos_v);
-        assert!((w - (1.0 - (F0 * a + b))).abs() < 1e-9, "diffuse weight at R {r}, n·v {cos_v}: {w}");
+        assert!((w - (1.0 - e)).abs() < 1e-9, "diffuse weight at R {r}, n·v {cos_v}: {w}");
+        // Multiple scattering adds little to a dielectric: within 5% of single scattering.
+        assert!(e >= F0 * a + b && e <= 1.05 * (F0 * a + b), "dielectric energy at R {r}, n·v {cos_v}: {e} vs {}", F0 * a + b);
     }
     assert!((weight(0.5, 1.0) - (1.0 - F0)).abs() < 0.02, "head-on: about 1 − F0");
     assert!(weight(0.1, 0.1) < 0.5, "smooth, grazing: the specular layer takes most: {}", weight(0.1, 0.1));
@@ -371,4 +375,32 @@ fn the_calibrated_brdf_keeps_a_full_reflectors_energy_and_attenuates_the_diffuse
     assert!((a + b - 1.0).abs() < 0.05 && (F0 * a + b - 1.0).abs() < 0.06, "mirror at grazing: A {a}, B {b}");
     let (a, b): (f64, f64) = env_brdf(0.0, 1.0);
     assert!((F0 * a + b - F0).abs() < 0.01, "mirror head-on: {}", F0 * a + b);
+}
+
+#[test]
+fn ggx_energy_keeps_a_white_reflector_whole_and_darkens_a_coloured_rough_metal() {
+    use pii_bake::sg::shade::{env_brdf, env_brdf_average, ggx_energy};
+    // Kulla & Conty's compensation as Cycles applies it: exactly 1 for a white reflector at every
+    // roughness and view; a coloured one keeps more than single scattering and, from multiple
+    // bounces each tinted by the Fresnel, less than the linear `B + f0·(1 − B)`.
+    for r in [0.02, 0.3, 0.6, 1.0] {
+        for nv in [0.05, 0.5, 1.0] {
+            let e: f64 = ggx_energy(r, nv, 1.0);
+            assert!((e - 1.0).abs() < 1e-12, "white at R {r}, n·v {nv}: {e}");
+            let (a, b): (f64, f64) = env_brdf(r, nv);
+            let f0 = 0.5;
+            let e = ggx_energy(r, nv, f0);
+            assert!(e >= f0 * a + b - 1e-12 && e <= b + f0 * (1.0 - b) + 1e-12, "R {r}, n·v {nv}: {e}");
+            assert!(ggx_energy(r, nv, 0.3) < e && e < ggx_energy(r, nv, 0.7), "monotone in f0 at R {r}");
+        }
+    }
+    // Average albedo of the white lobe: 1 for a mirror, falling with roughness (about 0.45 at R 1
+    // in Karis' fit).
+    let avg = |r: f64| env_brdf_average(r);
+    assert!((avg(0.0) - 1.0).abs() < 0.01, "{}", avg(0.0));
+    assert!(avg(0.5) < avg(0.2) && avg(1.0) < avg(0.5) && avg(1.0) > 0.35, "{} {} {}", avg(0.2), avg(0.5), avg(1.0));
+    // A rough coloured metal is where the forms differ most.
+    let (a, b): (f64, f64) = env_brdf(0.9, 0.7);
+    let e = ggx_energy(0.9, 0.7, 0.6);
+    assert!(e < 0.95 * (b + 0.6 * (1.0 - b)) && e > 1.05 * (0.6 * a + b), "{e}");
 }

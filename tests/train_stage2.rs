@@ -134,9 +134,11 @@ fn tiny_metal(decoder: DecoderMode) -> Stage2Config {
 
 #[test]
 fn metallic_gradient_matches_central_differences_and_old_runs_read_dielectric() {
+    use pii_bake::sg::shade::BrdfModel;
     let b = Backend::cpu();
-    for decoder in [DecoderMode::Separate, DecoderMode::Shared] {
-        let cfg = tiny_metal(decoder);
+    for (decoder, brdf) in [(DecoderMode::Separate, BrdfModel::Physg), (DecoderMode::Shared, BrdfModel::Physg), (DecoderMode::Separate, BrdfModel::Calibrated)] {
+        let mut cfg = tiny_metal(decoder);
+        cfg.brdf = brdf;
         assert_eq!(cfg.material_channels(), 5);
         let model = Stage2Model::new(&cfg).unwrap();
         let metal = model.material(&b, &batch().x).unwrap().metallic;
@@ -158,7 +160,10 @@ fn metallic_gradient_matches_central_differences_and_old_runs_read_dielectric() 
     assert!(!serde_json::from_value::<Stage2Config>(v.clone()).unwrap().metallic);
     // Runs from before the calibrated BRDF read (and resume) with the form they were trained with.
     v.as_object_mut().unwrap().remove("brdf");
-    assert_eq!(serde_json::from_value::<Stage2Config>(v).unwrap().brdf, pii_bake::sg::shade::BrdfModel::Physg);
+    v.as_object_mut().unwrap().remove("brdf_warmup");
+    let old = serde_json::from_value::<Stage2Config>(v).unwrap();
+    assert_eq!(old.brdf, BrdfModel::Physg);
+    assert_eq!(old.brdf_warmup, 0.0, "runs from before the warm-up resume without it");
 }
 
 #[test]
@@ -977,4 +982,49 @@ fn the_material_grid_is_coarser_only_where_the_cached_points_would_spread_thin()
     // Never below 32 cells, whatever the capture; never above half stage 1's.
     assert_eq!(material_grid_finest(&sizes(0.0005, 1024), 1000, 1e7), 32);
     assert_eq!(material_grid_finest(&sizes(0.05, 64), points, 10.0), 32);
+}
+
+#[test]
+fn a_calibrated_run_warms_up_with_physgs_brdf() {
+    use pii_bake::sg::shade::BrdfModel;
+    let mut cfg = tiny(IndirectMode::Ours, DecoderMode::Separate);
+    cfg.iterations = 10;
+    cfg.brdf_warmup = 0.5;
+    // PhySG's runs shade with it throughout.
+    assert!((0..10).all(|s| cfg.brdf_at(s) == BrdfModel::Physg));
+    cfg.brdf = BrdfModel::Calibrated;
+    let forms: Vec<BrdfModel> = (0..10).map(|s| cfg.brdf_at(s)).collect();
+    assert_eq!(&forms[..5], &[BrdfModel::Physg; 5]);
+    assert_eq!(&forms[5..], &[BrdfModel::Calibrated; 5]);
+    cfg.brdf_warmup = 0.0;
+    assert!((0..10).all(|s| cfg.brdf_at(s) == BrdfModel::Calibrated));
+    // A warm-up that never ends is refused.
+    cfg.brdf_warmup = 1.0;
+    assert!(cfg.validate().unwrap_err().to_string().contains("brdf_warmup"));
+    // The trainer shades its warm-up steps with PhySG's form: step for step the same losses as a
+    // PhySG run until the warm-up ends, then its own; the run keeps its own form throughout.
+    let b = Backend::cpu();
+    let mut cache = pii_bake::train::stage2::SurfaceCache::default();
+    let bt = batch();
+    cache.x = bt.x.clone();
+    cache.n = bt.n.clone();
+    cache.v = bt.v.clone();
+    cache.target = bt.target.clone();
+    cfg.brdf_warmup = 0.5;
+    cfg.batch = 4;
+    let losses = |cfg: &Stage2Config| {
+        let mut t = pii_bake::train::stage2::Stage2Trainer::new(cfg).unwrap();
+        let l: Vec<f64> = (0..8).map(|_| t.train_step(&b, &cache).unwrap().loss).collect();
+        assert_eq!(t.cfg().brdf, cfg.brdf);
+        l
+    };
+    let warm = losses(&cfg);
+    let mut p = cfg.clone();
+    p.brdf = BrdfModel::Physg;
+    let physg = losses(&p);
+    assert_eq!(&warm[..5], &physg[..5]);
+    assert!(warm[5..].iter().zip(&physg[5..]).all(|(a, b)| a != b), "{warm:?} vs {physg:?}");
+    let mut cold = cfg.clone();
+    cold.brdf_warmup = 0.0;
+    assert_ne!(losses(&cold)[0], physg[0]);
 }

@@ -53,6 +53,7 @@ pub fn run(args: &ExportArgs, ctx: &Context) -> anyhow::Result<()> {
         mesh: MeshConfig {
             resolution: args.asset.resolution.unwrap_or(256),
             error_bound: args.asset.error_bound,
+            face_tolerance_deg: args.asset.face_tolerance_deg(),
             ..Default::default()
         },
         texture: args.asset.texture,

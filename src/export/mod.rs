@@ -86,6 +86,27 @@ pub struct AssetArgs {
     /// Also write a .usdz package.
     #[arg(long)]
     pub usdz: bool,
+    /// Largest angle (degrees, 1–90) the simplification may leave between a face's normal and the
+    /// surface's: a smaller one keeps more triangles where a tool draws the mesh flat-shaded
+    /// (default: no limit; the shading normals are held within 10° either way).
+    #[arg(long, value_parser = parse_face_tolerance)]
+    pub face_tolerance: Option<f32>,
+}
+
+impl AssetArgs {
+    /// [`MeshConfig::face_tolerance_deg`] from `--face-tolerance` (its default where not given).
+    pub fn face_tolerance_deg(&self) -> f32 {
+        self.face_tolerance.unwrap_or(MeshConfig::default().face_tolerance_deg)
+    }
+}
+
+fn parse_face_tolerance(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|_| format!("face tolerance `{s}` is not a number of degrees"))?;
+    if (1.0..=90.0).contains(&v) {
+        Ok(v)
+    } else {
+        Err(format!("face tolerance {v}° must be in 1..=90"))
+    }
 }
 
 /// Everything the export needs besides the fields.

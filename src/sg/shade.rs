@@ -371,6 +371,45 @@ pub fn env_brdf<S: Scalar>(r: S, nv: S) -> (S, S) {
     (S::c(-1.04) * a004 + z, S::c(1.04) * a004 + w)
 }
 
+/// Gauss–Legendre nodes and weights on [0, 1] (8 points) for [`env_brdf_average`].
+const GL8: [(f64, f64); 8] = [
+    (0.019855071751231856, 0.050614268145188129),
+    (0.101666761293186630, 0.111190517226687235),
+    (0.237233795041835507, 0.156853322938943644),
+    (0.408282678752175098, 0.181341891689180991),
+    (0.591717321247824902, 0.181341891689180991),
+    (0.762766204958164493, 0.156853322938943644),
+    (0.898333238706813370, 0.111190517226687235),
+    (0.980144928248768144, 0.050614268145188129),
+];
+
+/// A white GGX reflector's cosine-weighted average albedo `E_avg = 2∫ E(μ)·μ dμ` over the view
+/// cosine μ ([`env_brdf`]'s `A + B`), by 8-point Gauss–Legendre quadrature.
+pub fn env_brdf_average<S: Scalar>(r: S) -> S {
+    let mut sum = S::c(0.0);
+    for (mu, w) in GL8 {
+        let (a, b) = env_brdf(r, S::c(mu));
+        sum = sum + (a + b) * S::c(2.0 * mu * w);
+    }
+    sum
+}
+
+/// The energy a GGX lobe of reflectance `f0` reflects toward `n·v` under a white furnace, with
+/// the multiple scattering Cycles adds (Kulla & Conty's compensation as `bsdf_microfacet.h`'s
+/// `microfacet_ggx_preserve_energy` applies it): the single-scattering albedo `f0·A + B` times
+/// `1 + F_ms·(1 − E)/E`, `E = A + B` the white lobe's albedo, `F_ms = F_avg·E_avg / (1 − F_avg·(1 − E_avg))`
+/// and `F_avg = f0 + (1 − f0)/21` Schlick's hemispherical average. 1 at `f0 = 1` for every
+/// roughness and view; not linear in `f0` (a coloured rough metal keeps less than `f0`).
+pub fn ggx_energy<S: Scalar>(r: S, nv: S, f0: S) -> S {
+    let r = r.max_c(R_MIN).min_c(1.0);
+    let (a, b) = env_brdf(r, nv);
+    let e = (a + b).max_c(1e-3);
+    let e_avg = env_brdf_average(r).max_c(1e-3);
+    let f_avg = f0 + (S::c(1.0) - f0) * S::c(1.0 / 21.0);
+    let f_ms = f_avg * e_avg / (S::c(1.0) - f_avg * (S::c(1.0) - e_avg));
+    (f0 * a + b).max_c(0.0) * (S::c(1.0) + f_ms * (S::c(1.0) - e) / e)
+}
+
 /// The BRDF side of a point's shading, the same for every lobe: the unit normal and the GGX
 /// lobe as an SG warped to the light domain, its amplitude carrying Fresnel, masking and the
 /// `1/(4(ω·n)(v·n))`.
@@ -380,12 +419,18 @@ pub struct BrdfSg<S> {
     axis: V3<S>,
     lambda: S,
     amplitude: S,
-    /// The amplitude's derivative in F0 (Fresnel `F0 + (1 − F0)·f` is linear in F0): what a
-    /// metallic surface's `F0 = mix(0.04, albedo, m)` scales ([`BrdfSg::lobe_factors_f0`]).
-    amplitude_f0: S,
-    /// The diffuse factor's weight: 1, or `1 − (F0·A + B)`, what the dielectric specular layer
-    /// leaves ([`BrdfModel::Calibrated`], [`env_brdf`]).
+    /// The amplitude per unit of reflected energy: with reflectance `f` instead of [`F0`] the
+    /// amplitude is `amplitude + (E(f) − E(F0))·amplitude_energy` ([`BrdfSg::energy`]). PhySG's
+    /// form: `E(f) = f` and this the amplitude's derivative in F0 (its Fresnel `F0 + (1 − F0)·s`
+    /// is linear in F0); the calibrated form: the lobe normalised to a unit white furnace.
+    amplitude_energy: S,
+    /// The diffuse factor's weight: 1, or `1 − E(F0)`, what the dielectric specular layer
+    /// leaves ([`BrdfModel::Calibrated`], [`ggx_energy`]).
     diffuse_weight: S,
+    model: BrdfModel,
+    /// Clamped roughness and `n·v`, for [`BrdfSg::energy`].
+    r: S,
+    nv: S,
 }
 
 impl<S: Scalar> BrdfSg<S> {
@@ -421,43 +466,62 @@ impl<S: Scalar> BrdfSg<S> {
         };
         let dg = mu_d * g1 * g2 / (S::c(4.0) * d1 * d2 + S::c(TINY));
         if !calibrated {
-            // Fresnel at the lobe's axis (the calibrated form takes it from `env_brdf` instead).
+            // Fresnel at the lobe's axis (the calibrated form takes the energy from `ggx_energy` instead).
             let h = normalize(add(w, v));
             let vh = dot(v, h).max_c(0.0);
             let schlick = (-(S::c(5.55473) * vh + S::c(6.8316)) * vh).exp2();
             let fresnel = S::c(F0) + S::c(1.0 - F0) * schlick;
-            return BrdfSg { n, axis: w, lambda: lam_w, amplitude: fresnel * dg, amplitude_f0: (S::c(1.0) - schlick) * dg, diffuse_weight: S::c(1.0) };
+            return BrdfSg { n, axis: w, lambda: lam_w, amplitude: fresnel * dg, amplitude_energy: (S::c(1.0) - schlick) * dg, diffuse_weight: S::c(1.0), model, r, nv: vn };
         }
         // White furnace: the lobe without Fresnel under a constant unit environment (an SG of
         // sharpness LAMBDA_MIN around n is 1 to within 2e-4), normalised to 1 and scaled to the
-        // GGX lobe's directional albedo, `F0·A + B` single-scattering ([`env_brdf`]), with the
-        // multiple scattering that keeps a white reflector's energy: `B + F0·(1 − B)` (exact at
-        // F0 = 1, within `F0·(1 − A − B)` of single scattering at small F0, linear in F0 as the
-        // metallic path needs).
+        // energy Cycles' GGX reflects, multiple scattering included ([`ggx_energy`]).
         let (p_axis, p_lambda, e) = sg_product_shape(n, S::c(LAMBDA_MIN), w, lam_w);
         let furnace = dg * e * cosine_hemisphere_unit(p_axis, p_lambda, n);
         let unit = dg / (furnace + S::c(TINY));
-        let (a, b) = env_brdf(r, vn);
+        let e_f0 = ggx_energy(r, vn, S::c(F0));
         BrdfSg {
             n,
             axis: w,
             lambda: lam_w,
-            amplitude: unit * (b + S::c(F0) * (S::c(1.0) - b)),
-            amplitude_f0: unit * (S::c(1.0) - b),
+            amplitude: unit * e_f0,
+            amplitude_energy: unit,
             // The diffuse keeps what the dielectric specular layer does not reflect.
-            diffuse_weight: S::c(1.0) - (S::c(F0) * a + b),
+            diffuse_weight: S::c(1.0) - e_f0,
+            model,
+            r,
+            nv: vn,
         }
     }
 
-    /// [`lobe_factors`] of a light lobe (axis need not be unit; λ floored at [`LAMBDA_MIN`]).
+    /// The energy measure `E(f)` of reflectance `f` in which the specular is linear
+    /// ([`Self::lobe_factors_f0`]): `f` itself in PhySG's form, [`ggx_energy`] in the calibrated one.
+    pub fn energy(&self, f: S) -> S {
+        match self.model {
+            BrdfModel::Physg => f,
+            BrdfModel::Calibrated => ggx_energy(self.r, self.nv, f),
+        }
+    }
+
+    /// `dE/df` at `f` ([`Self::energy`]), in f64 at the point's roughness and view.
+    pub fn energy_slope(&self, f: f64) -> f64 {
+        match self.model {
+            BrdfModel::Physg => 1.0,
+            BrdfModel::Calibrated => ggx_energy(Dual::<1> { v: self.r.val(), d: [0.0] }, Dual { v: self.nv.val(), d: [0.0] }, Dual::var(f, 0)).d[0],
+        }
+    }
+
+/// [`lobe_factors`] of a light lobe (axis need not be unit; λ floored at [`LAMBDA_MIN`]).
     pub fn lobe_factors(&self, axis: V3<S>, lambda: S) -> (S, S) {
         let (spec, _, diff) = self.lobe_factors_f0(axis, lambda);
         (spec, diff)
     }
 
-    /// [`Self::lobe_factors`] and the specular factor's derivative in F0, `(F_s, ∂F_s/∂F0, F_d)`:
-    /// with reflectance `F0'` instead of [`F0`] the specular factor is `F_s + (F0' − F0)·∂F_s/∂F0`
-    /// (exactly: the Fresnel term is linear in F0).
+    /// [`Self::lobe_factors`] and the specular factor per unit of reflected energy, `(F_s, F_e, F_d)`:
+    /// with reflectance `f` instead of [`F0`] the specular factor is `F_s + (E(f) − E(F0))·F_e`
+    /// ([`Self::energy`]; in PhySG's form `E(f) = f` and `F_e = ∂F_s/∂F0`, exactly: its Fresnel
+    /// term is linear in F0). A metallic mix `m` of the two (Principled BSDF's and glTF's linear
+    /// blend) is `F_s + m·(E(albedo) − E(F0))·F_e`.
     pub fn lobe_factors_f0(&self, axis: V3<S>, lambda: S) -> (S, S, S) {
         let axis = normalize(axis);
         let lambda = lambda.max_c(LAMBDA_MIN);
@@ -466,7 +530,7 @@ impl<S: Scalar> BrdfSg<S> {
         let spec_unit = e * cosine_hemisphere_unit(p_axis, p_lambda, self.n);
         // Diffuse: the light cosine-weighted over the hemisphere (times the albedo's weight in the caller).
         let diff = cosine_hemisphere_unit(axis, lambda, self.n) * self.diffuse_weight;
-        (self.amplitude * spec_unit, self.amplitude_f0 * spec_unit, diff)
+        (self.amplitude * spec_unit, self.amplitude_energy * spec_unit, diff)
     }
 }
 

@@ -67,6 +67,10 @@ pub struct BenchTrainArgs {
     /// The grid resolutions for those asset meshes (default: the scene's, as `export` uses).
     #[arg(long, num_args = 1..)]
     pub asset_resolution: Vec<usize>,
+    /// Measure the shipped mesh at these face-normal tolerances (degrees,
+    /// `MeshConfig::face_tolerance_deg`) as well (default: the shipped one).
+    #[arg(long, num_args = 1..)]
+    pub asset_face_tolerance: Vec<f32>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -139,7 +143,7 @@ fn measure_asset(backend: &Backend, model: &super::stage1::Model, mesh_cfg: &cra
     let pred = crate::eval::mesh::Mesh::from_indexed(&res.mesh.positions, &res.mesh.indices).with_normals(&res.normals);
     let m = crate::eval::mesh::compare_meshes(&pred, gt, 20_000, 1);
     Ok(serde_json::json!({
-        "resolution": mesh_cfg.resolution, "bound_cells": mesh_cfg.bound_cells, "error_bound": res.stats.error_bound,
+        "resolution": mesh_cfg.resolution, "bound_cells": mesh_cfg.bound_cells, "face_tolerance_deg": mesh_cfg.face_tolerance_deg, "error_bound": res.stats.error_bound,
         "error_bound_rel": res.stats.error_bound as f64 / gt_size, "measured_deviation": res.stats.measured_deviation,
         "triangles": res.stats.triangles, "chamfer_rel": m.chamfer / gt_size, "normal_consistency": m.normal_consistency,
         "shading_normal_consistency": m.shading_normal_consistency, "seconds": t.elapsed().as_secs_f64(),
@@ -288,12 +292,13 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
                 let shipped = super::cli::trained_mesh_config(&cfg.sizes, None, None);
                 let cells = if args.asset_bound_cells.is_empty() { vec![shipped.bound_cells] } else { args.asset_bound_cells.clone() };
                 let resolutions = if args.asset_resolution.is_empty() { vec![shipped.resolution] } else { args.asset_resolution.clone() };
+                let faces = if args.asset_face_tolerance.is_empty() { vec![shipped.face_tolerance_deg] } else { args.asset_face_tolerance.clone() };
                 let mut assets = Vec::new();
                 for &r in &resolutions {
-                    for &c in &cells {
-                        let a = measure_asset(&backend, tr.model(), &crate::mesh::MeshConfig { resolution: r, bound_cells: c, ..shipped.clone() }, &gt, gt_size)?;
+                    for (&c, &ft) in cells.iter().flat_map(|c| faces.iter().map(move |f| (c, f))) {
+                        let a = measure_asset(&backend, tr.model(), &crate::mesh::MeshConfig { resolution: r, bound_cells: c, face_tolerance_deg: ft, ..shipped.clone() }, &gt, gt_size)?;
                         ctx.say(format!(
-                            "{sname} {name}: asset mesh {r}^3, bound {c} cells: {} triangles, Chamfer {:.3}%, NC {:.4} (faces) / {:.4} (shading normals)",
+                            "{sname} {name}: asset mesh {r}^3, bound {c} cells, faces within {ft}°: {} triangles, Chamfer {:.3}%, NC {:.4} (faces) / {:.4} (shading normals)",
                             a["triangles"], 100.0 * a["chamfer_rel"].as_f64().unwrap_or(f64::NAN), a["normal_consistency"].as_f64().unwrap_or(f64::NAN),
                             a["shading_normal_consistency"].as_f64().unwrap_or(f64::NAN)
                         ));

@@ -870,7 +870,7 @@ pub fn export_stage1(backend: &Backend, trainer: &Trainer, rs: &RunScene, asset:
     let material = RadiancePreview { model: trainer.model(), rotation, roughness: 0.5, feature: 16.0 * cfg.sizes.pixel_footprint };
     let ecfg = ExportConfig {
         name: asset.name.clone().unwrap_or_else(|| default_name.to_string()),
-        mesh: trained_mesh_config(&cfg.sizes, asset.resolution, asset.error_bound),
+        mesh: MeshConfig { face_tolerance_deg: asset.face_tolerance_deg(), ..trained_mesh_config(&cfg.sizes, asset.resolution, asset.error_bound) },
         texture: asset.texture,
         metres_per_unit: (asset.metres_per_unit / rs.scale) as f32,
         usdz: asset.usdz,

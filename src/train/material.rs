@@ -849,7 +849,7 @@ pub fn export_stage2(backend: &Backend, s1: &Trainer, s2: &Stage2Trainer, rs: &R
     let material = LearnedMaterial { model: &s2.model, rotation, feature: 16.0 * cfg.sizes.pixel_footprint };
     let ecfg = ExportConfig {
         name: asset.name.clone().unwrap_or_else(|| default_name.to_string()),
-        mesh: super::cli::trained_mesh_config(&cfg.sizes, asset.resolution, asset.error_bound),
+        mesh: crate::mesh::MeshConfig { face_tolerance_deg: asset.face_tolerance_deg(), ..super::cli::trained_mesh_config(&cfg.sizes, asset.resolution, asset.error_bound) },
         texture: asset.texture,
         metres_per_unit: (asset.metres_per_unit / rs.scale) as f32,
         usdz: asset.usdz,

@@ -477,6 +477,7 @@ pub fn run_preview(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
         mesh: MeshConfig {
             resolution: args.asset.resolution.unwrap_or(128),
             error_bound: Some(args.asset.error_bound.unwrap_or(2.0 / res as f32)),
+            face_tolerance_deg: args.asset.face_tolerance_deg(),
             ..Default::default()
         },
         texture: args.asset.texture,

@@ -55,7 +55,7 @@ use crate::nn::params::ParamStore;
 use crate::render::grid::SdfGrid;
 use crate::render::{trace, trace_secondary, Rays, TraceConfig};
 use crate::sg::env::{EnvSgs, SgLobe};
-use crate::sg::shade::{normalize, sg_eval, BrdfModel, BrdfSg, Dual, Sg, F0, LAMBDA_MIN, R_MIN};
+use crate::sg::shade::{normalize, sg_eval, BrdfModel, BrdfSg, Dual, Scalar, Sg, F0, LAMBDA_MIN, R_MIN};
 use crate::util::DataError;
 
 /// How light blocked by the object itself is modelled.
@@ -286,6 +286,10 @@ pub struct Stage2Config {
     /// form they were trained with) and resume as they ran.
     #[serde(default)]
     pub brdf: BrdfModel,
+    /// With the calibrated BRDF: the fraction of the iterations shaded with PhySG's form first.
+    /// BRDF_WARMUP_FIGURES Run files without the field read 0 and resume as they ran.
+    #[serde(default)]
+    pub brdf_warmup: f32,
 }
 
 impl Stage2Config {
@@ -407,11 +411,24 @@ impl Stage2Config {
             unit_axes: true,
             metallic: false,
             brdf: BrdfModel::Physg,
+            brdf_warmup: 0.5,
+        }
+    }
+
+    /// The BRDF form step `step` shades with ([`Self::brdf_warmup`]).
+    pub fn brdf_at(&self, step: u64) -> BrdfModel {
+        if self.brdf == BrdfModel::Calibrated && (step as f64) < self.brdf_warmup as f64 * self.iterations as f64 {
+            BrdfModel::Physg
+        } else {
+            self.brdf
         }
     }
 
     pub fn validate(&self) -> Result<(), BackendError> {
         let bad = |m: &str| Err(BackendError::Config(format!("stage 2: {m}")));
+        if !(0.0..1.0).contains(&self.brdf_warmup) {
+            return bad("brdf_warmup must be in [0, 1)");
+        }
         if self.lobes == 0 || self.lobes > 1024 {
             return bad("lobes must be in 1..=1024");
         }
@@ -431,6 +448,7 @@ impl Stage2Config {
         if !(self.kl_rho > 0.0 && self.kl_rho < 1.0) {
             return bad("kl_rho must be in (0, 1)");
         }
+
         if !(self.boundary_epsilon >= 0.0 && self.boundary_epsilon < 1.0) {
             return bad("boundary_epsilon must be in [0, 1)");
         }
@@ -1092,25 +1110,28 @@ pub fn mii_fit(lobes: &[Sg<f64>], targets: &[([f32; 3], [f32; 3])], scale: f64) 
     (loss, g)
 }
 
-/// A metallic surface's per-channel weights: `(m·(a_c − F0), (1 − m)·a_c/π)`. The specular sum
-/// is `Σ μ_c·(F_s + ks_c·∂F_s/∂F0)` (reflectance `mix(F0, a, m)`), the diffuse `Σ μ_c·kd_c·F_d`.
-fn metal_weights(albedo: [f64; 3], metal: f64) -> ([f64; 3], [f64; 3]) {
-    (albedo.map(|a| metal * (a - F0)), albedo.map(|a| (1.0 - metal) * a * (1.0 / PI)))
+/// A metallic surface's per-channel weights `(ks, kd)`: `ks_c = m·(E(a_c) − E(F0))` in the
+/// BRDF's energy measure ([`BrdfSg::energy`]; PhySG's form: `m·(a_c − F0)`), `kd_c = (1 − m)·a_c/π`.
+/// The specular sum is `Σ μ_c·(F_s + ks_c·F_e)` (Principled BSDF's linear blend of a dielectric
+/// and a metal of reflectance `a`), the diffuse `Σ μ_c·kd_c·F_d`.
+fn metal_weights<S: Scalar>(brdf: &BrdfSg<S>, albedo: [f64; 3], metal: f64) -> ([S; 3], [f64; 3]) {
+    let e0 = brdf.energy(S::c(F0));
+    (albedo.map(|a| (brdf.energy(S::c(a)) - e0) * S::c(metal)), albedo.map(|a| (1.0 - metal) * a * (1.0 / PI)))
 }
 
 /// Outgoing radiance (linear) at one point: the specular and diffuse sums of
 /// [`crate::sg::shade::lobe_contribution`] before their clamps, the BRDF's side formed once
-/// ([`BrdfSg`]); with `metal` > 0 the reflectance is `mix(F0, albedo, metal)` and the diffuse
-/// term scaled by `1 − metal` ([`Stage2Config::metallic`]).
+/// ([`BrdfSg`]); with `metal` > 0 a blend of the dielectric and a metal of reflectance `albedo`,
+/// the diffuse term scaled by `1 − metal` ([`Stage2Config::metallic`]).
 pub fn shade_f64(model: BrdfModel, albedo: [f64; 3], rough: f64, metal: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>]) -> ([f64; 3], [f64; 3]) {
     let brdf = BrdfSg::with_model(model, n, v, rough);
-    let (ks, kd) = metal_weights(albedo, metal);
+    let (ks, kd) = metal_weights(&brdf, albedo, metal);
     let mut spec = [0.0; 3];
     let mut diff = [0.0; 3];
     for l in lobes {
-        let (fs, fa, fd) = brdf.lobe_factors_f0(l.axis, l.lambda);
+        let (fs, fe, fd) = brdf.lobe_factors_f0(l.axis, l.lambda);
         for c in 0..3 {
-            spec[c] += l.mu[c] * (fs + ks[c] * fa);
+            spec[c] += l.mu[c] * (fs + ks[c] * fe);
             diff[c] += l.mu[c] * kd[c] * fd;
         }
     }
@@ -1124,8 +1145,13 @@ pub fn shade_f64(model: BrdfModel, albedo: [f64; 3], rough: f64, metal: f64, n: 
 pub struct PointShading {
     pub spec: [f64; 3],
     pub diff: [f64; 3],
-    /// Per lobe `(F_s, ∂F_s/∂F0, F_d)` ([`BrdfSg::lobe_factors_f0`]).
+    /// Per lobe `(F_s, F_e, F_d)` ([`BrdfSg::lobe_factors_f0`]).
     factors: Vec<(Dual<5>, Dual<5>, Dual<5>)>,
+    /// The metal weights `ks_c` as duals in R ([`metal_weights`]), `∂ks_c/∂a_c`, and
+    /// `E(a_c) − E(F0)` (`∂ks_c/∂m`).
+    ks: [Dual<5>; 3],
+    dks_da: [f64; 3],
+    energy_gap: [f64; 3],
 }
 
 /// A point's `PointShading::grad`: `(d albedo, d roughness, d metallic, per lobe [d axis (3), d λ, d μ (3)])`.
@@ -1136,16 +1162,19 @@ impl PointShading {
         type D = Dual<5>;
         let cst = |x: f64| D { v: x, d: [0.0; 5] };
         let brdf = BrdfSg::with_model(model, n.map(cst), v.map(cst), D::var(rough, 0));
-        let (ks, kd) = metal_weights(albedo, metal);
-        let mut out = Self { spec: [0.0; 3], diff: [0.0; 3], factors: Vec::with_capacity(lobes.len()) };
+        let (ks, kd) = metal_weights(&brdf, albedo, metal);
+        let dks_da = albedo.map(|a| metal * brdf.energy_slope(a));
+        let e0 = brdf.energy(cst(F0)).v;
+        let energy_gap = albedo.map(|a| brdf.energy(cst(a)).v - e0);
+        let mut out = Self { spec: [0.0; 3], diff: [0.0; 3], factors: Vec::with_capacity(lobes.len()), ks, dks_da, energy_gap };
         for l in lobes {
             let axis = [D::var(l.axis[0], 1), D::var(l.axis[1], 2), D::var(l.axis[2], 3)];
-            let (fs, fa, fd) = brdf.lobe_factors_f0(axis, D::var(l.lambda, 4));
+            let (fs, fe, fd) = brdf.lobe_factors_f0(axis, D::var(l.lambda, 4));
             for c in 0..3 {
-                out.spec[c] += l.mu[c] * (fs.v + ks[c] * fa.v);
+                out.spec[c] += l.mu[c] * (fs.v + ks[c].v * fe.v);
                 out.diff[c] += l.mu[c] * kd[c] * fd.v;
             }
-            out.factors.push((fs, fa, fd));
+            out.factors.push((fs, fe, fd));
         }
         out
     }
@@ -1156,25 +1185,35 @@ impl PointShading {
     pub fn grad(&self, albedo: [f64; 3], metal: f64, lobes: &[Sg<f64>], d_out: [f64; 3]) -> ShadingGrad {
         let ws = [0, 1, 2].map(|c| if self.spec[c] > 0.0 { d_out[c] } else { 0.0 });
         let wd = [0, 1, 2].map(|c| if self.diff[c] > 0.0 { d_out[c] } else { 0.0 });
-        let (ks, kd) = metal_weights(albedo, metal);
+        let ks = self.ks.map(|k| k.v);
+        let kd = albedo.map(|a| (1.0 - metal) * a * (1.0 / PI));
         let mut da = [0.0; 3];
         let (mut dr, mut dm) = (0.0, 0.0);
+        // Per channel Σ_l μ_c·F_e: what the metal weights' own derivatives multiply.
+        let mut fe_sum = [0.0; 3];
         let mut dl = Vec::with_capacity(lobes.len());
-        for (l, (fs, fa, fd)) in lobes.iter().zip(&self.factors) {
-            let (mut cs, mut ca, mut cd) = (0.0, 0.0, 0.0);
+        for (l, (fs, fe, fd)) in lobes.iter().zip(&self.factors) {
+            let (mut cs, mut ce, mut cd) = (0.0, 0.0, 0.0);
             let mut g = [0.0f64; 7];
             for c in 0..3 {
                 cs += ws[c] * l.mu[c];
-                ca += ws[c] * l.mu[c] * ks[c];
+                ce += ws[c] * l.mu[c] * ks[c];
                 cd += wd[c] * l.mu[c] * kd[c];
-                g[4 + c] = ws[c] * (fs.v + ks[c] * fa.v) + wd[c] * kd[c] * fd.v;
-                da[c] += ws[c] * l.mu[c] * metal * fa.v + wd[c] * l.mu[c] * (1.0 - metal) * (1.0 / PI) * fd.v;
-                dm += ws[c] * l.mu[c] * (albedo[c] - F0) * fa.v - wd[c] * l.mu[c] * albedo[c] * (1.0 / PI) * fd.v;
+                fe_sum[c] += l.mu[c] * fe.v;
+                g[4 + c] = ws[c] * (fs.v + ks[c] * fe.v) + wd[c] * kd[c] * fd.v;
+                da[c] += wd[c] * l.mu[c] * (1.0 - metal) * (1.0 / PI) * fd.v;
+                dm += -wd[c] * l.mu[c] * albedo[c] * (1.0 / PI) * fd.v;
             }
-            let d: [f64; 5] = std::array::from_fn(|i| cs * fs.d[i] + ca * fa.d[i] + cd * fd.d[i]);
+            let d: [f64; 5] = std::array::from_fn(|i| cs * fs.d[i] + ce * fe.d[i] + cd * fd.d[i]);
             dr += d[0];
             g[..4].copy_from_slice(&d[1..]);
             dl.push(g);
+        }
+        for c in 0..3 {
+            // ks_c = m·(E(a_c) − E(F0)): through the albedo, the metallic and (calibrated) R.
+            da[c] += ws[c] * fe_sum[c] * self.dks_da[c];
+            dm += ws[c] * fe_sum[c] * self.energy_gap[c];
+            dr += ws[c] * fe_sum[c] * self.ks[c].d[0];
         }
         (da, dr, dm, dl)
     }
@@ -1190,19 +1229,16 @@ pub fn shade_normal_grad(model: BrdfModel, albedo: [f64; 3], rough: f64, metal: 
     let cst = |x: f64| D { v: x, d: [0.0; 3] };
     // The BRDF's side once per point (as `PointShading`), the normal's tangents through it.
     let brdf = BrdfSg::with_model(model, [D::var(n[0], 0), D::var(n[1], 1), D::var(n[2], 2)], v.map(cst), cst(rough));
-    let (ks, kd) = metal_weights(albedo, metal);
+    let (ks, kd) = metal_weights(&brdf, albedo, metal);
     let mut dn = [0.0; 3];
     for l in lobes {
-        let (fs, fa, fd) = brdf.lobe_factors_f0(l.axis.map(cst), cst(l.lambda));
-        // spec_c = μ_c·(F_s + ks_c·∂F_s/∂F0), diff_c = μ_c·kd_c·F_d.
-        let (mut cs, mut ca, mut cd) = (0.0, 0.0, 0.0);
+        let (fs, fe, fd) = brdf.lobe_factors_f0(l.axis.map(cst), cst(l.lambda));
+        // spec_c = μ_c·(F_s + ks_c·F_e), diff_c = μ_c·kd_c·F_d; ks_c depends on n through n·v.
         for c in 0..3 {
-            cs += ws[c] * l.mu[c];
-            ca += ws[c] * l.mu[c] * ks[c];
-            cd += wd[c] * l.mu[c] * kd[c];
-        }
-        for (a, d) in dn.iter_mut().enumerate() {
-            *d += cs * fs.d[a] + ca * fa.d[a] + cd * fd.d[a];
+            let s = fs + ks[c] * fe;
+            for (a, d) in dn.iter_mut().enumerate() {
+                *d += ws[c] * l.mu[c] * s.d[a] + wd[c] * l.mu[c] * kd[c] * fd.d[a];
+            }
         }
     }
     dn
@@ -2135,10 +2171,16 @@ impl Stage2Trainer {
         let batch = cache.batch(&idx, self.cfg().lobes);
         let noise_seed = rng.random::<u64>();
         let refine = self.cfg().refine_geometry;
-        let (g, geometry) = match geometry {
-            Some(m) if refine => (loss_and_grad_geometry(backend, &self.model, &batch, &self.weights(), noise_seed, m)?, Some(m)),
-            _ => (loss_and_grad(backend, &self.model, &batch, &self.weights(), noise_seed)?, None),
+        // The BRDF of this step ([`Stage2Config::brdf_warmup`]): the model's own, PhySG's during a
+        // calibrated run's warm-up.
+        let run_brdf = self.model.cfg.brdf;
+        self.model.cfg.brdf = self.cfg().brdf_at(self.step);
+        let result = match geometry {
+            Some(m) if refine => loss_and_grad_geometry(backend, &self.model, &batch, &self.weights(), noise_seed, m).map(|g| (g, Some(m))),
+            _ => loss_and_grad(backend, &self.model, &batch, &self.weights(), noise_seed).map(|g| (g, None)),
         };
+        self.model.cfg.brdf = run_brdf;
+        let (g, geometry) = result?;
         let stats = g.stats.clone();
         let (applied, norm) = self.apply_with(g, geometry)?;
         self.step += 1;
