@@ -278,7 +278,8 @@ fn an_off_centre_principal_point_shifts_the_blender_image_as_the_photo_is_shifte
 /// `bench brdf` at a tiny size: Cycles renders a rough metal sphere and a rough dielectric one
 /// under a shipped map's SG re-render; the calibrated BRDF form reproduces the metal far better
 /// than PhySG's (which loses its energy to the horizon: measured at full size 0.59 of Cycles'
-/// radiance at R = 0.7, 16.4–19.3 against 25.3–28.5 dB) and the dielectric about as well.
+/// radiance at R = 0.7, 16.4–19.3 against 27.5–31.2 dB; at this size +7.9 dB, energy 0.94) and
+/// the dielectric about as well.
 #[test]
 fn bench_brdf_shows_the_calibrated_form_closer_to_cycles_on_a_rough_metal() {
     let dir = tempfile::tempdir().unwrap();
@@ -304,8 +305,8 @@ fn bench_brdf_shows_the_calibrated_form_closer_to_cycles_on_a_rough_metal() {
     };
     let (metal_physg, energy_physg) = psnr("1", "physg");
     let (metal_cal, energy_cal) = psnr("1", "calibrated");
-    assert!(metal_cal > metal_physg + 4.0, "rough metal: calibrated {metal_cal} dB vs PhySG {metal_physg} dB\n{csv}");
-    assert!(energy_physg < 0.8 && (energy_cal - 1.0).abs() < 0.15, "energy ratios: PhySG {energy_physg}, calibrated {energy_cal}\n{csv}");
+    assert!(metal_cal > metal_physg + 6.0, "rough metal: calibrated {metal_cal} dB vs PhySG {metal_physg} dB\n{csv}");
+    assert!(energy_physg < 0.8 && (energy_cal - 1.0).abs() < 0.1, "energy ratios: PhySG {energy_physg}, calibrated {energy_cal}\n{csv}");
     let (diel_physg, _) = psnr("0", "physg");
     let (diel_cal, _) = psnr("0", "calibrated");
     assert!(diel_cal > diel_physg - 0.5, "rough dielectric: calibrated {diel_cal} dB vs PhySG {diel_physg} dB\n{csv}");

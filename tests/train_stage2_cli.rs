@@ -162,8 +162,9 @@ fn a_metallic_run_trains_exports_its_metallic_texture_and_relights_its_view() {
     };
     let (run, report, asset) = train_export("on", "on", &[]);
     assert_eq!(report["config"]["metallic"], true);
-    assert_eq!(report["config"]["brdf"], "physg", "the paper's BRDF by default");
-    assert!(report["sizes"]["why"]["brdf"].as_str().unwrap().contains("--brdf calibrated"), "{}", report["sizes"]["why"]);
+    assert_eq!(report["config"]["brdf"], "calibrated", "the BRDF matched to Cycles by default");
+    assert_eq!(report["config"]["brdf_warmup"], 0.5, "after PhySG's warm-up");
+    assert!(report["sizes"]["why"]["brdf"].as_str().unwrap().contains("--brdf physg"), "{}", report["sizes"]["why"]);
     assert!(report["sizes"]["why"]["metallic"].as_str().unwrap().contains("--metallic off"), "{}", report["sizes"]["why"]);
     let m = &report["material"]["metallic"];
     assert!(m["mean"].as_f64().unwrap() > 0.2 && m["mean"].as_f64().unwrap() < 0.8, "starts at 0.5, neither metal nor dielectric: {m}");
@@ -178,10 +179,10 @@ fn a_metallic_run_trains_exports_its_metallic_texture_and_relights_its_view() {
     assert!(o.status.success(), "{}", text(&o));
     assert!(rel.join("test/r_000_metallic.png").is_file(), "{}", text(&o));
     // `--metallic off`: four material channels, a dielectric asset, no metallic view; with the
-    // calibrated BRDF (`--brdf calibrated`) recorded in the run.
-    let (_, report, asset) = train_export("off", "off", &["--brdf", "calibrated"]);
+    // paper's BRDF (`--brdf physg`) recorded in the run.
+    let (_, report, asset) = train_export("off", "off", &["--brdf", "physg"]);
     assert_eq!(report["config"]["metallic"], false);
-    assert_eq!(report["config"]["brdf"], "calibrated");
+    assert_eq!(report["config"]["brdf"], "physg");
     assert!(report["material"]["metallic"].is_null());
     let orm = image::open(asset.join("textures/orm.png")).unwrap().to_rgb8();
     assert!(orm.pixels().all(|p| p[2] == 0), "a dielectric asset's ORM B is 0");

@@ -333,13 +333,15 @@ pub fn lobe_factors<S: Scalar>(normal: V3<S>, view: V3<S>, roughness: S, axis: V
 /// PhySG's form loses a rough metal's energy (its lobe is clipped by the horizon and its masking
 /// is the direct-light `k = (R+1)²/8`): 0.42–0.43 of Cycles' radiance at R = 0.9, 0.77–0.84 at
 /// R = 0.3, and it fits best 0.05–0.1 rougher than the truth; metals 14.1–28.8 dB. The calibrated
-/// form: metals 20.7–37.1 dB with the best fit within 0.05 of the true roughness from R = 0.2 to 0.7 (energy
-/// 0.99–1.05 up to R = 0.5, overshooting to 1.32 at 0.9 on this coloured metal: its reflectance
-/// is linear in F0, multiscatter's is not); dielectrics 37.1–42.5 dB against 33.3–41.6.
+/// form: metals 24.9–36.3 dB (energy 0.93–1.01 at every roughness, the best fit within 0.05 of
+/// the true roughness); dielectrics 36.6–43.1 dB against 33.3–41.6. (Its first version scaled
+/// the lobe to `B + F0·(1 − B)`, linear in F0: metals 20.7–37.1 dB, overshooting a coloured rough
+/// metal's energy by 1.32 at R = 0.9; [`ggx_energy`] replaced it.)
 ///
-/// In training the calibrated form is not the default: a rough surface keeps its specular energy,
-/// which stage 2 can use as a grey near-diffuse layer: it drives the bowl's roughness to 1 and
-/// learns the Ethiopian head's bronze as mostly dielectric under a tinted light.
+/// In training (stage 2's default) it starts from PhySG's form ([`crate::train::stage2::Stage2Config::brdf_warmup`]):
+/// from the first step a rough surface keeps its specular energy, which stage 2 can use as a
+/// grey near-diffuse layer, a local minimum it does not leave (the bowl's roughness went to 1
+/// everywhere, its training PSNR 26.1 against 27.8 dB from the warm-up).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "kebab-case")]
 pub enum BrdfModel {

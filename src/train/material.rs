@@ -49,11 +49,10 @@ pub struct MaterialOptions {
     /// and it has no diffuse), `on` by default; `off` models dielectrics only (the paper's).
     #[arg(long, value_enum, default_value_t = MetallicMode::On)]
     pub metallic: MetallicMode,
-    /// The BRDF's SG form: `physg` (the default: the paper's, PhySG's closed form) or `calibrated`
-    /// (matched to Cycles' Principled BSDF, which renders the asset in Blender: far better on rough
-    /// metals, but a rough surface keeps its specular energy and stage 2 can then drive roughness
-    /// to 1, as on the bowl and the Ethiopian head). See `BrdfModel`.
-    #[arg(long, value_enum, default_value_t = BrdfModel::Physg)]
+    /// The BRDF's SG form: `calibrated` (the default: matched to Cycles' Principled BSDF, which
+    /// renders the asset in Blender, after a warm-up with PhySG's form) or `physg` (the paper's,
+    /// PhySG's closed form, throughout). See `BrdfModel`.
+    #[arg(long, value_enum, default_value_t = BrdfModel::Calibrated)]
     pub brdf: BrdfModel,
     /// Boundary lights (secondary hits that graze the occluder): `flowing` passes their gradient to
     /// the light (ours), `detached` keeps them in the colour without gradient (the public code).
@@ -111,7 +110,7 @@ pub struct KnownEnv {
 
 impl Default for MaterialOptions {
     fn default() -> Self {
-        Self { lobes: None, indirect: IndirectMode::Ours, decoder: None, roughness: RoughnessMode::Field, metallic: MetallicMode::On, brdf: BrdfModel::Physg, boundary: BoundaryMode::Flowing, refine_geometry: false, material_iterations: None, material_batch: None, material_set: Vec::new(), known_env: KnownEnv::default() }
+        Self { lobes: None, indirect: IndirectMode::Ours, decoder: None, roughness: RoughnessMode::Field, metallic: MetallicMode::On, brdf: BrdfModel::Calibrated, boundary: BoundaryMode::Flowing, refine_geometry: false, material_iterations: None, material_batch: None, material_set: Vec::new(), known_env: KnownEnv::default() }
     }
 }
 
@@ -283,8 +282,8 @@ pub fn stage2_config(preset: Preset, format: Format, data: &TrainData, sizes: &s
             MetallicMode::Off => "off (`--metallic off`): dielectrics only",
         },
         "brdf": match opts.brdf {
-            BrdfModel::Physg => "physg (the default): the paper's SG BRDF (PhySG's closed form); `--brdf calibrated` matches Cycles' Principled BSDF",
-            BrdfModel::Calibrated => "calibrated (`--brdf calibrated`): the SG BRDF matched to Cycles' Principled BSDF",
+            BrdfModel::Physg => "physg (`--brdf physg`): the paper's SG BRDF (PhySG's closed form) throughout",
+            BrdfModel::Calibrated => "calibrated (the default): the SG BRDF matched to Cycles' Principled BSDF (which renders the asset in Blender), after a warm-up with PhySG's form; `--brdf physg` keeps the paper's",
         },
         "decoder": if opts.decoder.is_some() { "forced by --decoder".to_string() } else if synthetic { "separate: a synthetic (transforms.json) scene".to_string() } else { "shared: a real capture (supplementary §5.2)".to_string() },
         "points": format!("min(preset cap, {} masked training pixels)", data.foreground_pixels()),
