@@ -351,9 +351,9 @@ pub enum BrdfModel {
     Physg,
     /// Calibrated to Cycles' Principled BSDF: D's SG as for `α·`[`CALIBRATED_ALPHA_SCALE`] (the
     /// SG has no GGX tail; the scale makes the fitted roughness the true one), separable Smith
-    /// GGX masking, the lobe normalised so that a white furnace returns GGX's directional albedo
-    /// ([`env_brdf`], with multiscatter GGX's energy: the SG loses to the horizon what GGX
-    /// keeps), and the diffuse attenuated by what the dielectric specular layer reflects.
+    /// GGX masking, the lobe normalised so that a white furnace returns the energy Cycles' GGX
+    /// reflects ([`ggx_energy`]: the SG loses to the horizon what GGX keeps), and the diffuse
+    /// attenuated by what the dielectric specular layer reflects.
     Calibrated,
 }
 
@@ -403,13 +403,39 @@ pub fn env_brdf_average<S: Scalar>(r: S) -> S {
 /// and `F_avg = f0 + (1 − f0)/21` Schlick's hemispherical average. 1 at `f0 = 1` for every
 /// roughness and view; not linear in `f0` (a coloured rough metal keeps less than `f0`).
 pub fn ggx_energy<S: Scalar>(r: S, nv: S, f0: S) -> S {
-    let r = r.max_c(R_MIN).min_c(1.0);
-    let (a, b) = env_brdf(r, nv);
-    let e = (a + b).max_c(1e-3);
-    let e_avg = env_brdf_average(r).max_c(1e-3);
-    let f_avg = f0 + (S::c(1.0) - f0) * S::c(1.0 / 21.0);
-    let f_ms = f_avg * e_avg / (S::c(1.0) - f_avg * (S::c(1.0) - e_avg));
-    (f0 * a + b).max_c(0.0) * (S::c(1.0) + f_ms * (S::c(1.0) - e) / e)
+    GgxEnergy::new(r, nv).at(f0)
+}
+
+/// [`ggx_energy`] at one roughness and view, its reflectance-free terms formed once: a point's
+/// shading asks for it at F0 and at each albedo channel.
+#[derive(Clone, Copy, Debug)]
+pub struct GgxEnergy<S> {
+    /// Karis' `A`, `B` ([`env_brdf`]), the white lobe's albedo `E` and its average `E_avg`.
+    a: S,
+    b: S,
+    e: S,
+    e_avg: S,
+}
+
+impl<S: Scalar> GgxEnergy<S> {
+    pub fn new(r: S, nv: S) -> Self {
+        let r = r.max_c(R_MIN).min_c(1.0);
+        let (a, b) = env_brdf(r, nv);
+        Self { a, b, e: (a + b).max_c(1e-3), e_avg: env_brdf_average(r).max_c(1e-3) }
+    }
+
+    /// The energy at reflectance `f0`.
+    pub fn at(&self, f0: S) -> S {
+        let f_avg = f0 + (S::c(1.0) - f0) * S::c(1.0 / 21.0);
+        let f_ms = f_avg * self.e_avg / (S::c(1.0) - f_avg * (S::c(1.0) - self.e_avg));
+        (f0 * self.a + self.b).max_c(0.0) * (S::c(1.0) + f_ms * (S::c(1.0) - self.e) / self.e)
+    }
+
+    /// `d energy / d f0` at `f0`, in f64.
+    pub fn slope(&self, f0: f64) -> f64 {
+        let c = |x: S| Dual::<1> { v: x.val(), d: [0.0] };
+        GgxEnergy { a: c(self.a), b: c(self.b), e: c(self.e), e_avg: c(self.e_avg) }.at(Dual::var(f0, 0)).d[0]
+    }
 }
 
 /// The BRDF side of a point's shading, the same for every lobe: the unit normal and the GGX
@@ -429,10 +455,9 @@ pub struct BrdfSg<S> {
     /// The diffuse factor's weight: 1, or `1 − E(F0)`, what the dielectric specular layer
     /// leaves ([`BrdfModel::Calibrated`], [`ggx_energy`]).
     diffuse_weight: S,
-    model: BrdfModel,
-    /// Clamped roughness and `n·v`, for [`BrdfSg::energy`].
-    r: S,
-    nv: S,
+    /// The calibrated form's energy at this roughness and view ([`BrdfSg::energy`]); `None`:
+    /// PhySG's form, whose energy measure is the reflectance itself.
+    ggx: Option<GgxEnergy<S>>,
 }
 
 impl<S: Scalar> BrdfSg<S> {
@@ -473,7 +498,7 @@ impl<S: Scalar> BrdfSg<S> {
             let vh = dot(v, h).max_c(0.0);
             let schlick = (-(S::c(5.55473) * vh + S::c(6.8316)) * vh).exp2();
             let fresnel = S::c(F0) + S::c(1.0 - F0) * schlick;
-            return BrdfSg { n, axis: w, lambda: lam_w, amplitude: fresnel * dg, amplitude_energy: (S::c(1.0) - schlick) * dg, diffuse_weight: S::c(1.0), model, r, nv: vn };
+            return BrdfSg { n, axis: w, lambda: lam_w, amplitude: fresnel * dg, amplitude_energy: (S::c(1.0) - schlick) * dg, diffuse_weight: S::c(1.0), ggx: None };
         }
         // White furnace: the lobe without Fresnel under a constant unit environment (an SG of
         // sharpness LAMBDA_MIN around n is 1 to within 2e-4), normalised to 1 and scaled to the
@@ -481,7 +506,8 @@ impl<S: Scalar> BrdfSg<S> {
         let (p_axis, p_lambda, e) = sg_product_shape(n, S::c(LAMBDA_MIN), w, lam_w);
         let furnace = dg * e * cosine_hemisphere_unit(p_axis, p_lambda, n);
         let unit = dg / (furnace + S::c(TINY));
-        let e_f0 = ggx_energy(r, vn, S::c(F0));
+        let ggx = GgxEnergy::new(r, vn);
+        let e_f0 = ggx.at(S::c(F0));
         BrdfSg {
             n,
             axis: w,
@@ -490,30 +516,22 @@ impl<S: Scalar> BrdfSg<S> {
             amplitude_energy: unit,
             // The diffuse keeps what the dielectric specular layer does not reflect.
             diffuse_weight: S::c(1.0) - e_f0,
-            model,
-            r,
-            nv: vn,
+            ggx: Some(ggx),
         }
     }
 
     /// The energy measure `E(f)` of reflectance `f` in which the specular is linear
     /// ([`Self::lobe_factors_f0`]): `f` itself in PhySG's form, [`ggx_energy`] in the calibrated one.
     pub fn energy(&self, f: S) -> S {
-        match self.model {
-            BrdfModel::Physg => f,
-            BrdfModel::Calibrated => ggx_energy(self.r, self.nv, f),
-        }
+        self.ggx.map_or(f, |g| g.at(f))
     }
 
     /// `dE/df` at `f` ([`Self::energy`]), in f64 at the point's roughness and view.
     pub fn energy_slope(&self, f: f64) -> f64 {
-        match self.model {
-            BrdfModel::Physg => 1.0,
-            BrdfModel::Calibrated => ggx_energy(Dual::<1> { v: self.r.val(), d: [0.0] }, Dual { v: self.nv.val(), d: [0.0] }, Dual::var(f, 0)).d[0],
-        }
+        self.ggx.map_or(1.0, |g| g.slope(f))
     }
 
-/// [`lobe_factors`] of a light lobe (axis need not be unit; λ floored at [`LAMBDA_MIN`]).
+    /// [`lobe_factors`] of a light lobe (axis need not be unit; λ floored at [`LAMBDA_MIN`]).
     pub fn lobe_factors(&self, axis: V3<S>, lambda: S) -> (S, S) {
         let (spec, _, diff) = self.lobe_factors_f0(axis, lambda);
         (spec, diff)

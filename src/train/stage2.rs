@@ -1128,13 +1128,25 @@ pub fn mii_fit(lobes: &[Sg<f64>], targets: &[([f32; 3], [f32; 3])], scale: f64) 
     (loss, g)
 }
 
-/// A metallic surface's per-channel weights `(ks, kd)`: `ks_c = m·(E(a_c) − E(F0))` in the
-/// BRDF's energy measure ([`BrdfSg::energy`]; PhySG's form: `m·(a_c − F0)`), `kd_c = (1 − m)·a_c/π`.
+/// A metallic surface's per-channel weights `(ks, kd)` from its [`energy_gaps`]:
+/// `ks_c = m·(E(a_c) − E(F0))` in the BRDF's energy measure ([`BrdfSg::energy`]; PhySG's form:
+/// `m·(a_c − F0)`), `kd_c = (1 − m)·a_c/π`.
 /// The specular sum is `Σ μ_c·(F_s + ks_c·F_e)` (Principled BSDF's linear blend of a dielectric
 /// and a metal of reflectance `a`), the diffuse `Σ μ_c·kd_c·F_d`.
-fn metal_weights<S: Scalar>(brdf: &BrdfSg<S>, albedo: [f64; 3], metal: f64) -> ([S; 3], [f64; 3]) {
+fn metal_weights<S: Scalar>(gaps: [S; 3], albedo: [f64; 3], metal: f64) -> ([S; 3], [f64; 3]) {
+    (gaps.map(|g| g * S::c(metal)), diffuse_weights(albedo, metal))
+}
+
+/// [`metal_weights`]' diffuse side, `(1 − m)·a_c/π`.
+fn diffuse_weights(albedo: [f64; 3], metal: f64) -> [f64; 3] {
+    albedo.map(|a| (1.0 - metal) * a * (1.0 / PI))
+}
+
+/// `E(a_c) − E(F0)` per channel ([`BrdfSg::energy`]): a full metal's specular beyond the
+/// dielectric's, per unit of `F_e`.
+fn energy_gaps<S: Scalar>(brdf: &BrdfSg<S>, albedo: [f64; 3]) -> [S; 3] {
     let e0 = brdf.energy(S::c(F0));
-    (albedo.map(|a| (brdf.energy(S::c(a)) - e0) * S::c(metal)), albedo.map(|a| (1.0 - metal) * a * (1.0 / PI)))
+    albedo.map(|a| brdf.energy(S::c(a)) - e0)
 }
 
 /// Outgoing radiance (linear) at one point: the specular and diffuse sums of
@@ -1143,7 +1155,7 @@ fn metal_weights<S: Scalar>(brdf: &BrdfSg<S>, albedo: [f64; 3], metal: f64) -> (
 /// the diffuse term scaled by `1 − metal` ([`Stage2Config::metallic`]).
 pub fn shade_f64(model: BrdfModel, albedo: [f64; 3], rough: f64, metal: f64, n: [f64; 3], v: [f64; 3], lobes: &[Sg<f64>]) -> ([f64; 3], [f64; 3]) {
     let brdf = BrdfSg::with_model(model, n, v, rough);
-    let (ks, kd) = metal_weights(&brdf, albedo, metal);
+    let (ks, kd) = metal_weights(energy_gaps(&brdf, albedo), albedo, metal);
     let mut spec = [0.0; 3];
     let mut diff = [0.0; 3];
     for l in lobes {
@@ -1180,10 +1192,10 @@ impl PointShading {
         type D = Dual<5>;
         let cst = |x: f64| D { v: x, d: [0.0; 5] };
         let brdf = BrdfSg::with_model(model, n.map(cst), v.map(cst), D::var(rough, 0));
-        let (ks, kd) = metal_weights(&brdf, albedo, metal);
+        let gaps = energy_gaps(&brdf, albedo);
+        let (ks, kd) = metal_weights(gaps, albedo, metal);
         let dks_da = albedo.map(|a| metal * brdf.energy_slope(a));
-        let e0 = brdf.energy(cst(F0)).v;
-        let energy_gap = albedo.map(|a| brdf.energy(cst(a)).v - e0);
+        let energy_gap = gaps.map(|g| g.v);
         let mut out = Self { spec: [0.0; 3], diff: [0.0; 3], factors: Vec::with_capacity(lobes.len()), ks, dks_da, energy_gap };
         for l in lobes {
             let axis = [D::var(l.axis[0], 1), D::var(l.axis[1], 2), D::var(l.axis[2], 3)];
@@ -1204,7 +1216,7 @@ impl PointShading {
         let ws = [0, 1, 2].map(|c| if self.spec[c] > 0.0 { d_out[c] } else { 0.0 });
         let wd = [0, 1, 2].map(|c| if self.diff[c] > 0.0 { d_out[c] } else { 0.0 });
         let ks = self.ks.map(|k| k.v);
-        let kd = albedo.map(|a| (1.0 - metal) * a * (1.0 / PI));
+        let kd = diffuse_weights(albedo, metal);
         let mut da = [0.0; 3];
         let (mut dr, mut dm) = (0.0, 0.0);
         // Per channel Σ_l μ_c·F_e: what the metal weights' own derivatives multiply.
@@ -1247,7 +1259,7 @@ pub fn shade_normal_grad(model: BrdfModel, albedo: [f64; 3], rough: f64, metal: 
     let cst = |x: f64| D { v: x, d: [0.0; 3] };
     // The BRDF's side once per point (as `PointShading`), the normal's tangents through it.
     let brdf = BrdfSg::with_model(model, [D::var(n[0], 0), D::var(n[1], 1), D::var(n[2], 2)], v.map(cst), cst(rough));
-    let (ks, kd) = metal_weights(&brdf, albedo, metal);
+    let (ks, kd) = metal_weights(energy_gaps(&brdf, albedo), albedo, metal);
     let mut dn = [0.0; 3];
     for l in lobes {
         let (fs, fe, fd) = brdf.lobe_factors_f0(l.axis.map(cst), cst(l.lambda));
