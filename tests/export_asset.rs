@@ -217,6 +217,21 @@ fn cli_exports_a_test_pattern_and_rejects_bad_flags() {
         .arg(&out)
         .assert()
         .code(2);
+    // `--face-tolerance`: outside 1..=90 degrees a usage error naming the range; within it the
+    // report holds every face to it (or to the unsimplified mesh's own lean, if that is worse).
+    let o = assert_cmd::Command::cargo_bin("pii-bake").unwrap().args(["export", "--analytic", "sphere", "--face-tolerance", "95", "--out"]).arg(&out).output().unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&o.stderr).contains("must be in 1..=90"), "{}", String::from_utf8_lossy(&o.stderr));
+    let torus = dir.path().join("torus");
+    assert_cmd::Command::cargo_bin("pii-bake")
+        .unwrap()
+        .args(["--backend", "cpu", "export", "--analytic", "torus", "--resolution", "40", "--texture", "64", "--face-tolerance", "12", "--out"])
+        .arg(&torus)
+        .assert()
+        .success();
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(torus.join("export_report.json")).unwrap()).unwrap();
+    let (face, own) = (report["mesh"]["face_angle_deg"].as_f64().unwrap(), report["mesh"]["unsimplified"]["face_angle_deg"].as_f64().unwrap());
+    assert!(face <= 12f64.max(own) + 1e-3, "faces lean {face}° (unsimplified {own}°)");
 }
 
 /// A checker whose light squares are metal (the learnt material's metallic channel, in a field

@@ -100,7 +100,7 @@ impl AssetArgs {
     }
 }
 
-fn parse_face_tolerance(s: &str) -> Result<f32, String> {
+pub(crate) fn parse_face_tolerance(s: &str) -> Result<f32, String> {
     let v: f32 = s.parse().map_err(|_| format!("face tolerance `{s}` is not a number of degrees"))?;
     if (1.0..=90.0).contains(&v) {
         Ok(v)

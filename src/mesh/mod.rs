@@ -168,10 +168,10 @@ impl Default for MeshConfig {
 /// bundled example's trained SDF (`bench train --asset-face-tolerance`, 96³ grid, bound 1/8 cell;
 /// triangles, face normal consistency against the ground truth, with shading normals): no limit
 /// 3184, 0.9813 / 0.9860; 20° 3466, 0.9821 / 0.9863; 15° 4110, 0.9824 / 0.9862; 12° 5146,
-/// 0.9830 / 0.9865; 10° 6812, 0.9832 / 0.9862; 8° 9876, 0.9838 / 0.9864 (classic tracing's SDF alike: 3142 →
-/// 9930, 0.9821 → 0.9844). Faces gain little for many more triangles (the
-/// field's own zero level scores 0.9852 there), and a .glb or USD draws the shading normals,
-/// which the 10° normal tolerance already holds, so the limit is `--face-tolerance`'s to set.
+/// 0.9830 / 0.9865; 10° 6812, 0.9832 / 0.9862; 8° 9876, 0.9838 / 0.9864 (classic tracing's SDF
+/// alike: 3142 → 9930, 0.9821 → 0.9844). Faces gain little for many more triangles (the field's
+/// own zero level scores 0.9852 there), and a .glb or USD draws the shading normals, which the
+/// 10° normal tolerance already holds, so the limit is `--face-tolerance`'s to set.
 pub const DEFAULT_FACE_TOLERANCE_DEG: f32 = 90.0;
 
 /// The mesh and what happened on the way, for the export report.

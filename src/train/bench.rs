@@ -69,7 +69,7 @@ pub struct BenchTrainArgs {
     pub asset_resolution: Vec<usize>,
     /// Measure the shipped mesh at these face-normal tolerances (degrees,
     /// `MeshConfig::face_tolerance_deg`) as well (default: the shipped one).
-    #[arg(long, num_args = 1..)]
+    #[arg(long, num_args = 1.., value_parser = crate::export::parse_face_tolerance)]
     pub asset_face_tolerance: Vec<f32>,
 }
 
