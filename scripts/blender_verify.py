@@ -20,12 +20,21 @@ frame (metres, +Y up); optional per camera: "up" (the image's up direction, defa
 at pixel (w/2 - shift_x*s, h/2 + shift_y*s), s the larger side, y down).
 
 Reference images with an alpha channel (photos with their masks) are compared inside the mask:
-PSNR weighted by the reference's alpha, SSIM on both images composited over black by it.
+PSNR weighted by the reference's alpha, SSIM on both images composited over black by it. Such
+references hold the object's own colour at the silhouette (straight alpha), so the check renders
+with --film-transparent: a render over the world would mix the world into every silhouette pixel
+(a bright sky then reads as a light fringe the asset does not have).
+
+--relight NAME ENV REFDIR (repeatable) renders the .glb again under each relight map ENV, taken
+in Blender's World convention as it is (the frame the .glb imports into, the one a scene made by
+make_scene.py renders its relit ground truth in), and scores it against REFDIR/ref_cam{i}.png as
+rendered and after one factor per colour channel in linear light ("psnr_aligned": the
+light/albedo scale ambiguity removed, as `pii-bake eval` scores relit views).
 
 Usage:
   python scripts/blender_verify.py --asset-dir DIR --cameras cams.json --out OUTDIR
       [--analytic sphere|torus --material gradient|checker --metres-per-unit S --origin-shift X Y Z]
-      [--reference-dir REFS] [--size 96] [--samples 64] [--json report.json]
+      [--reference-dir REFS] [--relight NAME ENV REFDIR ...] [--size 96] [--samples 64] [--json report.json]
 """
 import argparse
 import glob
@@ -55,9 +64,11 @@ def reset_scene(args):
     scene.render.resolution_x = args.size
     scene.render.resolution_y = args.size
     scene.render.resolution_percentage = 100
-    scene.render.film_transparent = False
+    # --film-transparent: the asset alone, its colour straight (not mixed with the world at the
+    # silhouette) and its coverage as alpha, as the references of a masked comparison have it.
+    scene.render.film_transparent = args.film_transparent
     scene.render.image_settings.file_format = "PNG"
-    scene.render.image_settings.color_mode = "RGB"
+    scene.render.image_settings.color_mode = "RGBA" if args.film_transparent else "RGB"
     scene.view_settings.view_transform = "Standard"
     scene.view_settings.look = "None"
     scene.display_settings.display_device = "sRGB"
@@ -273,13 +284,37 @@ def ssim(a, b):
     return float(s.mean())
 
 
-def compare(name, paths_a, paths_b):
+def srgb_decode(x):
+    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
+
+
+def srgb_encode(x):
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1.0 / 2.4) - 0.055)
+
+
+def channel_scales(pairs):
+    """One factor per colour channel on the renders, over every (render, reference, alpha)
+    triple: the weighted least-squares fit in linear light of the render to the reference, as
+    `pii-bake eval` removes the light/albedo scale ambiguity from relit views."""
+    num, den = np.zeros(3), np.zeros(3)
+    for a, b, w in pairs:
+        la, lb = srgb_decode(a), srgb_decode(b)
+        num += np.einsum("hw,hwc->c", w, la * lb)
+        den += np.einsum("hw,hwc->c", w, la * la)
+    return np.where(den > 0.0, num / np.maximum(den, 1e-30), 1.0)
+
+
+def compare(name, paths_a, paths_b, aligned=False):
     rows = []
+    loaded = []
     for pa, pb in zip(paths_a, paths_b):
         a, (b, alpha) = load_pixels(pa), load_pixels(pb, with_alpha=True)
         if a.shape != b.shape:
             rows.append({"a": pa, "b": pb, "error": f"size {a.shape} vs {b.shape}"})
             continue
+        weight = alpha if alpha.min() < 1.0 else np.ones_like(alpha)
+        loaded.append((len(rows), a, b, weight))
         if alpha.min() < 1.0:
             # A reference with a mask (a photo): compare the object only.
             m = alpha[:, :, None]
@@ -287,13 +322,20 @@ def compare(name, paths_a, paths_b):
         else:
             rows.append({"a": pa, "b": pb, "psnr": psnr(a, b), "ssim": ssim(a, b)})
     ok = [r for r in rows if "psnr" in r]
-    return {
+    out = {
         "pair": name,
         "images": rows,
         "min_psnr": min((r["psnr"] for r in ok), default=None),
         "mean_psnr": float(np.mean([r["psnr"] for r in ok])) if ok else None,
         "min_ssim": min((r["ssim"] for r in ok), default=None),
     }
+    if aligned and loaded:
+        scale = channel_scales([(a, b, w) for _, a, b, w in loaded])
+        for i, a, b, w in loaded:
+            rows[i]["psnr_aligned"] = psnr(srgb_encode(srgb_decode(a) * scale), b, w)
+        out["channel_scale"] = scale.tolist()
+        out["mean_psnr_aligned"] = float(np.mean([rows[i]["psnr_aligned"] for i, *_ in loaded]))
+    return out
 
 
 def main():
@@ -311,10 +353,16 @@ def main():
     ap.add_argument("--size", type=int, default=96)
     ap.add_argument("--samples", type=int, default=64)
     ap.add_argument("--denoise", action="store_true")
+    ap.add_argument("--film-transparent", action="store_true",
+                    help="render the asset over a transparent film: straight colour at the silhouette "
+                    "instead of colour mixed with the world (references with a mask are compared inside it)")
     ap.add_argument("--skip-usd", action="store_true")
     ap.add_argument("--json", help="report path (default: OUT/blender_report.json)")
     ap.add_argument("--env-convention", choices=["usd", "blender"], default="usd",
                     help="latlong convention of --env (pii-bake writes env.exr in the USD one)")
+    ap.add_argument("--relight", nargs=3, action="append", default=[], metavar=("NAME", "ENV", "REFDIR"),
+                    help="also render the .glb under ENV (a relight map in Blender's World convention, "
+                    "the asset imported as it is) and score it against REFDIR/ref_cam{i}.png; repeatable")
     args = ap.parse_args(argv)
 
     os.makedirs(args.out, exist_ok=True)
@@ -332,6 +380,19 @@ def main():
     make_world(scene, env, args.env_convention)
     report["glb_import"] = import_summary(bpy.ops.import_scene.gltf(filepath=glbs[0]))
     renders["glb"] = render_cameras(scene, cameras, os.path.join(args.out, "glb"), args.size)
+
+    # The asset under other light: each relight map as the world, in Blender's convention (the
+    # frame the .glb imports into), scored against the ground truth rendered under that map.
+    relit = []
+    for name, relight_env, ref_dir in args.relight:
+        scene = reset_scene(args)
+        make_world(scene, relight_env, "blender")
+        bpy.ops.import_scene.gltf(filepath=glbs[0])
+        paths = render_cameras(scene, cameras, os.path.join(args.out, f"relit_{name}"), args.size)
+        refs = [os.path.join(ref_dir, f"ref_cam{i}.png") for i in range(len(cameras))]
+        pair = compare(f"glb_relit_{name}_vs_reference", paths, refs, aligned=True)
+        pair["env"] = relight_env
+        relit.append(pair)
 
     if not args.skip_usd:
         scene = reset_scene(args)
@@ -360,6 +421,7 @@ def main():
             report["pairs"].append(compare("usd_vs_reference", renders["usd"], renders["ref"]))
     if "usd" in renders:
         report["pairs"].append(compare("usd_vs_glb", renders["usd"], renders["glb"]))
+    report["pairs"].extend(relit)
     path = args.json or os.path.join(args.out, "blender_report.json")
     with open(path, "w") as fh:
         json.dump(report, fh, indent=2)

@@ -208,6 +208,21 @@ fn bake_trains_both_stages_and_ships_them() {
     let psnr = bc["mean_psnr"].as_f64().unwrap();
     assert!(psnr.is_finite() && psnr > 5.0, "{bc}");
     assert!(out.join("blender_check/glb_cam0.png").is_file() && out.join("blender_check/photos/ref_cam0.png").is_file());
+    // The example has ground truth under two relight maps: the .glb was rendered under each from
+    // the same held-out camera and scored against it, as rendered and after one scale per channel.
+    let relit = bc["relit"].as_object().unwrap();
+    assert_eq!(relit.keys().collect::<Vec<_>>(), ["envmap6", "sunset"], "{bc}");
+    for (name, r) in relit {
+        assert_eq!(r["status"], "ok", "{name}: {r}");
+        for k in ["mean_psnr", "mean_psnr_aligned"] {
+            assert!(r[k].as_f64().is_some_and(|v| v.is_finite() && v > 5.0), "{name} {k}: {r}");
+        }
+        assert_eq!(r["channel_scale"].as_array().map(Vec::len), Some(3), "{r}");
+        // The reference is the ground truth brought to the view's size (the bake read at 1/4).
+        let reference = pii_bake::image_io::read_image_linear(&out.join(format!("blender_check/relit/{name}/ref_cam0.png"))).unwrap();
+        assert_eq!((reference.width, reference.height, reference.channels), (50, 50, 4));
+        assert!(out.join(format!("blender_check/relit_{name}_cam0.png")).is_file());
+    }
     assert!(out.join("spot.glb").is_file() && out.join("run/checkpoint.safetensors").is_file());
     common::assert_gltf_valid(&[out.join("spot.glb")]);
 }

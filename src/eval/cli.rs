@@ -129,7 +129,7 @@ impl Found {
 /// reads photos, each value weighted by `alpha` where there is one (a silhouette pixel keeps the
 /// colour of what covers it and takes the covered share as its alpha, as a render at that size
 /// has it): `(values, alpha)` at 1/n, returned as they are for n = 1.
-fn downscale_weighted(values: Vec<f32>, channels: usize, (width, height): (usize, usize), alpha: Option<Vec<f32>>, n: usize) -> (Vec<f32>, Option<Vec<f32>>) {
+pub(crate) fn downscale_weighted(values: Vec<f32>, channels: usize, (width, height): (usize, usize), alpha: Option<Vec<f32>>, n: usize) -> (Vec<f32>, Option<Vec<f32>>) {
     if n == 1 {
         return (values, alpha);
     }

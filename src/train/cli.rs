@@ -991,9 +991,9 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
     };
     let (train_v, held_v) = train_views(&scene);
     let blender = if held_v.is_empty() {
-        super::blender_check::run(&args.asset.out, &train_v, false, &frame, &args.blender, ctx)
+        super::blender_check::run(&args.asset.out, &args.scene, &train_v, false, &frame, &args.blender, ctx)
     } else {
-        super::blender_check::run(&args.asset.out, &held_v, true, &frame, &args.blender, ctx)
+        super::blender_check::run(&args.asset.out, &args.scene, &held_v, true, &frame, &args.blender, ctx)
     };
     let weak = run.report["weak_result"].as_bool().unwrap_or(false) || stage2_report["weak_result"].as_bool().unwrap_or(false);
     let summary = serde_json::json!({
