@@ -201,6 +201,10 @@ fn bake_trains_both_stages_and_ships_them() {
     let cc = &report["training"]["hull_init"]["concavities"];
     assert!(cc["rays"].as_u64().unwrap() > 0 && cc["rounds"].as_u64().unwrap() >= 1, "{cc}");
     assert!(report["ground_truth"]["metrics"]["chamfer"].as_f64().is_some(), "{}", report["ground_truth"]);
+    // The example's 24 photos see most of its surface three times or more: no coverage flag.
+    let cov = &report["training"]["coverage"];
+    assert!(cov["below_three"].as_f64().unwrap() < 0.25 && cov["surface_points"].as_u64().unwrap() > 1000, "{cov}");
+    assert!(report["flags"].as_array().unwrap().iter().all(|f| !f.as_str().unwrap().contains("fewer than three")), "{}", report["flags"]);
     // The Blender check rendered the .glb from a held-out camera and scored it against the photo.
     let bc = &report["blender_check"];
     assert_eq!(bc["status"], "ok", "{bc}");

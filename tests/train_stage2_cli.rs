@@ -376,6 +376,17 @@ fn eight_views_give_an_asset_and_finite_figures() {
     assert!(report["eval"]["psnr"].as_f64().unwrap().is_finite());
     assert!(report["weak_result"].is_boolean() && report["flags"].is_array());
     assert_eq!(report["skipped_steps"], 0);
+    // Stage 1 counts the photos that see each part of the surface, and flags a surface that too
+    // few photos see (the example's 24 photos leave 6.7% of it below three; these 8, 45%).
+    let s1: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("train_report.json")).unwrap()).unwrap();
+    let cov = &s1["coverage"];
+    let below = cov["below_three"].as_f64().unwrap();
+    assert!(below > 0.25 && below <= 1.0, "{cov}");
+    let parts: f64 = ["seen_by_0", "seen_by_1", "seen_by_2", "seen_by_3_or_more"].iter().map(|k| cov[*k].as_f64().unwrap()).sum();
+    assert!((parts - 1.0).abs() < 1e-9, "{cov}");
+    assert_eq!(s1["weak_result"], true, "{s1}");
+    assert!(s1["flags"].as_array().unwrap().iter().any(|f| f.as_str().unwrap().contains("fewer than three training photos")), "{}", s1["flags"]);
+    assert!(text(&o).contains("WEAK RESULT") && text(&o).contains("fewer than three"), "{}", text(&o));
     let asset = dir.path().join("asset");
     let o = pii(&["export", "--run", run.to_str().unwrap(), "--out", asset.to_str().unwrap(), "--resolution", "32", "--texture", "64", "--name", "eight"]);
     assert!(o.status.success(), "{}", text(&o));

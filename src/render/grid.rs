@@ -55,6 +55,16 @@ impl SdfGrid {
         self.spec.spacing
     }
 
+    /// The sampled value at node `(x, y, z)`.
+    pub fn node_value(&self, x: usize, y: usize, z: usize) -> f32 {
+        self.values[self.spec.index(x, y, z)]
+    }
+
+    /// The position of node `(x, y, z)`.
+    pub fn node_position(&self, x: usize, y: usize, z: usize) -> [f32; 3] {
+        self.spec.node(x, y, z)
+    }
+
     /// Field evaluations its sampling took.
     pub fn evaluations(&self) -> usize {
         self.values.len()

@@ -572,7 +572,28 @@ pub fn train_stage1(
     let eval_views: Vec<&View> = if held.is_empty() { views.iter().step_by((views.len() / 4).max(1)).take(4).copied().collect() } else { held.iter().take(8).copied().collect() };
     trainer.sync_host()?;
     let ev = evaluate_views(backend, trainer.model(), &cfg.trace, &eval_views, 128 * 128)?;
-    let weak = ev.mask_iou < 0.8 || trainer.skipped * 10 > trainer.step.max(1);
+    // How many training photos see each part of the surface (on the grid stage 2 marches on, so
+    // it is sampled once for both).
+    let t_cov = Instant::now();
+    let (grid, _) = trainer.model().sdf_grid(backend, super::material::secondary_grid_nodes(&cfg.sizes))?;
+    let cameras: Vec<&crate::scene::Camera> = views.iter().map(|v| &v.camera).collect();
+    let coverage = super::coverage::surface_coverage(&grid, &cameras)?;
+    let thin_coverage = coverage.below_three() > super::coverage::WEAK_BELOW_THREE;
+    let weak = ev.mask_iou < 0.8 || trainer.skipped * 10 > trainer.step.max(1) || thin_coverage;
+    let mut flags: Vec<String> = Vec::new();
+    if ev.mask_iou < 0.8 {
+        flags.push(format!("mask IoU {:.3} < 0.8: check masks, poses and view count", ev.mask_iou));
+    }
+    if trainer.skipped * 10 > trainer.step.max(1) {
+        flags.push(format!("{} of {} steps skipped for non-finite gradients", trainer.skipped, trainer.step));
+    }
+    if thin_coverage {
+        flags.push(format!(
+            "{:.0}% of the surface is seen by fewer than three training photos ({} photos): its shape and material there rest on too few views; photograph it from more sides",
+            100.0 * coverage.below_three(),
+            views.len()
+        ));
+    }
     let report = serde_json::json!({
         "stage": "geometry",
         "preset": cfg.preset,
@@ -593,6 +614,8 @@ pub fn train_stage1(
         "hull_init": hull_report,
         "mesh_init": mesh_report,
         "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr_pixels": HELD_OUT_PSNR_PIXELS, "psnr": ev.psnr, "mask_iou": ev.mask_iou, "per_view": ev.per_view, "seconds": t_eval.elapsed().as_secs_f64() },
+        "coverage": { "surface_points": coverage.surface_points, "seen_by_0": coverage.seen_by[0], "seen_by_1": coverage.seen_by[1], "seen_by_2": coverage.seen_by[2], "seen_by_3_or_more": coverage.seen_by[3], "below_three": coverage.below_three(), "median_views": coverage.median_views, "grid_nodes": coverage.grid_nodes, "seconds": t_cov.elapsed().as_secs_f64() },
+        "flags": flags,
         "weak_result": weak,
         "seconds": { "init": seconds_init, "train": seconds_train, "total": t_total.elapsed().as_secs_f64() },
     });
@@ -608,7 +631,15 @@ pub fn train_stage1(
         if held.is_empty() { "training views" } else { "held-out views" },
         ev.psnr,
         ev.mask_iou,
-        if weak { " — WEAK RESULT: check masks, poses and view count" } else { "" }
+        if weak { format!(" — WEAK RESULT: {}", flags.join("; ")) } else { String::new() }
+    ));
+    ctx.say(format!(
+        "stage 1: surface seen by 0 / 1 / 2 / 3+ training photos: {:.0}% / {:.0}% / {:.0}% / {:.0}% (median {})",
+        100.0 * coverage.seen_by[0],
+        100.0 * coverage.seen_by[1],
+        100.0 * coverage.seen_by[2],
+        100.0 * coverage.seen_by[3],
+        coverage.median_views
     ));
     Ok(Stage1Run { trainer, run_scene, report })
 }
@@ -1008,6 +1039,7 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
         "training": run.report,
         "material": stage2_report,
         "weak_result": weak,
+        "flags": run.report["flags"].as_array().into_iter().chain(stage2_report["flags"].as_array()).flatten().cloned().collect::<Vec<_>>(),
         "run": run_dir.display().to_string(),
         "seconds": { "stage1": seconds_stage1, "stage2": seconds_stage2, "export": seconds_export, "total": t_total.elapsed().as_secs_f64() },
         "export": report,

@@ -4,6 +4,7 @@ pub mod bench;
 pub mod bench_material;
 pub mod blender_check;
 pub mod cli;
+pub mod coverage;
 pub mod hull;
 pub mod material;
 pub mod photo;
