@@ -313,14 +313,14 @@ def compare(name, paths_a, paths_b, aligned=False):
         if a.shape != b.shape:
             rows.append({"a": pa, "b": pb, "error": f"size {a.shape} vs {b.shape}"})
             continue
-        weight = alpha if alpha.min() < 1.0 else np.ones_like(alpha)
-        loaded.append((len(rows), a, b, weight))
         if alpha.min() < 1.0:
             # A reference with a mask (a photo): compare the object only.
             m = alpha[:, :, None]
             rows.append({"a": pa, "b": pb, "masked": True, "psnr": psnr(a, b, alpha), "ssim": ssim(a * m, b * m)})
+            loaded.append((len(rows) - 1, a, b, alpha))
         else:
             rows.append({"a": pa, "b": pb, "psnr": psnr(a, b), "ssim": ssim(a, b)})
+            loaded.append((len(rows) - 1, a, b, np.ones_like(alpha)))
     ok = [r for r in rows if "psnr" in r]
     out = {
         "pair": name,
@@ -381,13 +381,12 @@ def main():
     report["glb_import"] = import_summary(bpy.ops.import_scene.gltf(filepath=glbs[0]))
     renders["glb"] = render_cameras(scene, cameras, os.path.join(args.out, "glb"), args.size)
 
-    # The asset under other light: each relight map as the world, in Blender's convention (the
-    # frame the .glb imports into), scored against the ground truth rendered under that map.
+    # The asset under other light: the imported .glb's scene with each relight map as its world,
+    # in Blender's convention (the frame the .glb imports into), scored against the ground truth
+    # rendered under that map.
     relit = []
     for name, relight_env, ref_dir in args.relight:
-        scene = reset_scene(args)
         make_world(scene, relight_env, "blender")
-        bpy.ops.import_scene.gltf(filepath=glbs[0])
         paths = render_cameras(scene, cameras, os.path.join(args.out, f"relit_{name}"), args.size)
         refs = [os.path.join(ref_dir, f"ref_cam{i}.png") for i in range(len(cameras))]
         pair = compare(f"glb_relit_{name}_vs_reference", paths, refs, aligned=True)

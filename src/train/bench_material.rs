@@ -139,7 +139,7 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
             copy_stage1(&args.run, &dir)?;
             ctx.say(format!("bench material: {variant}"));
             let opts = MaterialOptions { lobes: Some(k), indirect: mode, boundary, refine_geometry: refined, material_iterations: args.iterations, material_set: args.overrides.clone(), known_env: args.known_env.clone(), ..Default::default() };
-            let r = train_stage2(&scene, args.preset, &opts, 0, &dir, false, None, &backend, ctx)?;
+            let r = train_stage2(&scene, args.preset, &opts, 0, &dir, false, None, None, &backend, ctx)?;
             let rep = &r.report;
             let f = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
             let cfg = r.trainer.cfg();

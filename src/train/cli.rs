@@ -572,14 +572,12 @@ pub fn train_stage1(
     let eval_views: Vec<&View> = if held.is_empty() { views.iter().step_by((views.len() / 4).max(1)).take(4).copied().collect() } else { held.iter().take(8).copied().collect() };
     trainer.sync_host()?;
     let ev = evaluate_views(backend, trainer.model(), &cfg.trace, &eval_views, 128 * 128)?;
-    // How many training photos see each part of the surface (on the grid stage 2 marches on, so
-    // it is sampled once for both).
+    // How many training photos see each part of the surface, on the grid stage 2 marches on (a
+    // bake or `--stage all` hands it to stage 2: `Model::share_sdf_grid`).
     let t_cov = Instant::now();
     let (grid, _) = trainer.model().sdf_grid(backend, super::material::secondary_grid_nodes(&cfg.sizes))?;
     let cameras: Vec<&crate::scene::Camera> = views.iter().map(|v| &v.camera).collect();
     let coverage = super::coverage::surface_coverage(&grid, &cameras)?;
-    let thin_coverage = coverage.below_three() > super::coverage::WEAK_BELOW_THREE;
-    let weak = ev.mask_iou < 0.8 || trainer.skipped * 10 > trainer.step.max(1) || thin_coverage;
     let mut flags: Vec<String> = Vec::new();
     if ev.mask_iou < 0.8 {
         flags.push(format!("mask IoU {:.3} < 0.8: check masks, poses and view count", ev.mask_iou));
@@ -587,13 +585,14 @@ pub fn train_stage1(
     if trainer.skipped * 10 > trainer.step.max(1) {
         flags.push(format!("{} of {} steps skipped for non-finite gradients", trainer.skipped, trainer.step));
     }
-    if thin_coverage {
+    if coverage.below_three() > super::coverage::WEAK_BELOW_THREE {
         flags.push(format!(
             "{:.0}% of the surface is seen by fewer than three training photos ({} photos): its shape and material there rest on too few views; photograph it from more sides",
             100.0 * coverage.below_three(),
             views.len()
         ));
     }
+    let weak = !flags.is_empty();
     let report = serde_json::json!({
         "stage": "geometry",
         "preset": cfg.preset,
@@ -727,13 +726,13 @@ pub fn run(args: &TrainArgs, ctx: &Context) -> anyhow::Result<()> {
             ctx.emit("train", r.report);
         }
         Stage::Material => {
-            let r = super::material::train_stage2(&args.scene, args.preset, &args.material, args.opts.seed, &args.out, args.resume, args.stop_at, &backend, ctx)?;
+            let r = super::material::train_stage2(&args.scene, args.preset, &args.material, args.opts.seed, &args.out, args.resume, args.stop_at, None, &backend, ctx)?;
             ctx.emit("train", r.report);
         }
         Stage::All => {
-            let r = train_stage1(&args.scene, args.preset, &args.opts, &args.out, true, None, &backend, ctx)?;
-            ctx.emit("train", r.report);
-            let r = super::material::train_stage2(&args.scene, args.preset, &args.material, args.opts.seed, &args.out, args.resume, args.stop_at, &backend, ctx)?;
+            let r1 = train_stage1(&args.scene, args.preset, &args.opts, &args.out, true, None, &backend, ctx)?;
+            ctx.emit("train", r1.report.clone());
+            let r = super::material::train_stage2(&args.scene, args.preset, &args.material, args.opts.seed, &args.out, args.resume, args.stop_at, Some(r1.trainer.model()), &backend, ctx)?;
             ctx.emit("train", r.report);
         }
     }
@@ -979,7 +978,7 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
         None
     } else {
         let t2 = Instant::now();
-        let r2 = super::material::train_stage2(&args.scene, preset, &args.material, args.train.seed, &run_dir, true, None, &backend, ctx)?;
+        let r2 = super::material::train_stage2(&args.scene, preset, &args.material, args.train.seed, &run_dir, true, None, Some(run.trainer.model()), &backend, ctx)?;
         seconds_stage2 = t2.elapsed().as_secs_f64();
         stage2_report = r2.report.clone();
         Some(r2.trainer)

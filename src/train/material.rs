@@ -403,7 +403,10 @@ impl StepBackend {
 
 /// Train stage 2 on the stage-1 run in `run_dir`.
 #[allow(clippy::too_many_arguments)]
-pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, seed: u64, run_dir: &Path, resume: bool, stop_at: Option<u64>, backend: &Backend, ctx: &Context) -> anyhow::Result<Stage2Run> {
+/// `trained`: the stage-1 model this process has just trained into `run_dir`, if any, whose
+/// sampled SDF grid stage 2 then takes instead of sampling it again.
+#[allow(clippy::too_many_arguments)]
+pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, seed: u64, run_dir: &Path, resume: bool, stop_at: Option<u64>, trained: Option<&Stage1Model>, backend: &Backend, ctx: &Context) -> anyhow::Result<Stage2Run> {
     let t_total = Instant::now();
     crate::export::check_writable(run_dir)?;
     let s1 = load_stage1(run_dir, None)?;
@@ -456,6 +459,9 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     let mut s1 = s1;
     trainer.geometry_into(s1.trainer.model_mut()?).map_err(|e| DataError::new(&run_dir.join(CHECKPOINT2), e.to_string()))?;
     let mut geom = s1.trainer.into_model()?;
+    if let Some(m) = trained {
+        geom.share_sdf_grid(m);
+    }
 
     // The surface cache: primary points once; secondary hits per lobe (all re-traced every
     // `geometry_retrace_every` iterations while the geometry is refined).

@@ -739,6 +739,18 @@ impl Model {
         Ok((g, t0.elapsed().as_secs_f64()))
     }
 
+    /// Take `from`'s sampled grid ([`Self::sdf_grid`]) when it was sampled at this model's SDF
+    /// parameters, bit for bit: stage 2 loads the stage-1 model the same process has just trained
+    /// and sampled (for its coverage), and need not sample it again.
+    pub fn share_sdf_grid(&self, from: &Model) {
+        let theirs = from.grid_memo.lock().unwrap_or_else(|e| e.into_inner()).clone();
+        if let Some((p, g)) = theirs {
+            if crate::util::same_bits(&p, &self.sdf_params) {
+                *self.grid_memo.lock().unwrap_or_else(|e| e.into_inner()) = Some((p, g));
+            }
+        }
+    }
+
     /// `(features the radiance net reads, appearance-grid parameters)`.
     fn radiance_split_dims(&self) -> (usize, usize) {
         match &self.appearance {
