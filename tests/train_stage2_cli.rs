@@ -369,9 +369,19 @@ fn eight_views_give_an_asset_and_finite_figures() {
     assert_eq!(frames.len(), 8);
     v["frames"] = serde_json::Value::Array(frames);
     std::fs::write(&tf, serde_json::to_vec(&v).unwrap()).unwrap();
+    // `info` estimates the coverage before any training, from the masks' visual hull (44% below
+    // three for these 8 photos, 5% for the example's 24), and a new run warns before it trains.
+    let est = coverage_estimate(&scene);
+    assert_eq!(est["weak"], true, "{est}");
+    assert_eq!(est["train_views"], 8, "{est}");
+    assert!(est["below_three"].as_f64().unwrap() > 0.25, "{est}");
+    let full = coverage_estimate(&example());
+    assert_eq!(full["weak"], false, "{full}");
+    assert!(full["below_three"].as_f64().unwrap() < 0.15, "{full}");
     let run = dir.path().join("run");
     let o = train_all_tiny(&scene, &run);
     assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("WARNING: ") && text(&o).contains("visual hull is seen by fewer than three of the 8 training photos"), "{}", text(&o));
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("material_report.json")).unwrap()).unwrap();
     assert!(report["eval"]["psnr"].as_f64().unwrap().is_finite());
     assert!(report["weak_result"].is_boolean() && report["flags"].is_array());
@@ -391,6 +401,13 @@ fn eight_views_give_an_asset_and_finite_figures() {
     let o = pii(&["export", "--run", run.to_str().unwrap(), "--out", asset.to_str().unwrap(), "--resolution", "32", "--texture", "64", "--name", "eight"]);
     assert!(o.status.success(), "{}", text(&o));
     assert!(asset.join("eight.glb").is_file() && asset.join("env.exr").is_file());
+}
+
+/// `info --json`'s coverage estimate of a scene.
+fn coverage_estimate(scene: &Path) -> serde_json::Value {
+    let o = pii(&["--json", "info", scene.to_str().unwrap(), "--downscale", "4"]);
+    assert!(o.status.success(), "{}", text(&o));
+    String::from_utf8_lossy(&o.stdout).lines().filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok()).find(|v| v["type"] == "coverage_estimate").expect("a coverage_estimate record")
 }
 
 /// `info --json`'s photo-texture record of a scene.

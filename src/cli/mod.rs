@@ -138,7 +138,7 @@ pub fn main() -> ExitCode {
 pub fn run(cmd: &Command, ctx: &Context) -> anyhow::Result<()> {
     match cmd {
         Command::Devices => devices::run(ctx),
-        Command::Info(a) => crate::scene::cli::run(a, ctx),
+        Command::Info(a) => crate::scene::cli::run(a, ctx).and_then(|scene| crate::train::cli::info_coverage(&scene, ctx)),
         Command::Eval(a) => crate::eval::cli::run(a, ctx),
         Command::FitEnv(a) => crate::sg::cli::run(a, ctx),
         Command::Bake(a) => crate::train::preview::run(a, ctx),

@@ -80,7 +80,8 @@ pub fn summary(scene: &Scene) -> serde_json::Value {
     })
 }
 
-pub fn run(args: &InfoArgs, ctx: &Context) -> anyhow::Result<()> {
+/// Prints the scene's summary and returns the scene (the CLI adds what needs `train`).
+pub fn run(args: &InfoArgs, ctx: &Context) -> anyhow::Result<Scene> {
     let scene = load(&args.scene, &ReadOptions { downscale: args.downscale, keep_all_views: args.keep_all_views })?;
     let s = summary(&scene);
     ctx.emit("scene_info", s.clone());
@@ -149,5 +150,5 @@ pub fn run(args: &InfoArgs, ctx: &Context) -> anyhow::Result<()> {
         (Some(t), _) => format!("photo texture     {t:.3}"),
         _ => "photo texture     - (needs masks)".to_string(),
     });
-    Ok(())
+    Ok(scene)
 }

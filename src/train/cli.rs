@@ -197,6 +197,42 @@ pub fn train_views(scene: &Scene) -> (Vec<&View>, Vec<&View>) {
     (train, held)
 }
 
+/// `info`'s estimate of stage 1's coverage report, from the masks' visual hull and the training
+/// photos (see [`super::coverage::hull_coverage`]): warns before a long bake what stage 1 would
+/// flag after it.
+pub fn info_coverage(scene: &Scene, ctx: &Context) -> anyhow::Result<()> {
+    let (views, _) = train_views(scene);
+    let t = Instant::now();
+    let Some(c) = super::coverage::hull_coverage(&views)? else {
+        ctx.say("coverage (est.)   - (the masks leave no visual hull)");
+        return Ok(());
+    };
+    let mut rec = c.to_json(t.elapsed().as_secs_f64());
+    rec["of"] = "the masks' visual hull".into();
+    rec["train_views"] = views.len().into();
+    ctx.emit("coverage_estimate", rec);
+    let s = c.seen_by.map(|v| 100.0 * v);
+    ctx.say(format!(
+        "coverage (est.)   the masks' visual hull is seen by 0 / 1 / 2 / 3+ training photos over {:.1}% / {:.1}% / {:.1}% / {:.1}% of its surface (median {})",
+        s[0], s[1], s[2], s[3], c.median_views
+    ));
+    if let Some(w) = hull_coverage_warning(&c, views.len()) {
+        ctx.say(format!("  WARNING         {w}"));
+    }
+    Ok(())
+}
+
+/// The warning for a visual hull that too few photos see ([`info_coverage`], and a new stage-1
+/// run before it trains), or None.
+fn hull_coverage_warning(c: &super::coverage::SurfaceCoverage, photos: usize) -> Option<String> {
+    (c.below_three() > super::coverage::WEAK_BELOW_THREE).then(|| {
+        format!(
+            "{:.0}% of the masks' visual hull is seen by fewer than three of the {photos} training photos: stage 1 will likely flag the result weak; photograph the object from more sides",
+            100.0 * c.below_three()
+        )
+    })
+}
+
 /// Set by Ctrl-C; the loop checkpoints and stops.
 pub fn interrupt_flag() -> Arc<AtomicBool> {
     static FLAG: std::sync::OnceLock<Arc<AtomicBool>> = std::sync::OnceLock::new();
@@ -429,6 +465,10 @@ pub fn train_stage1(
         if resume {
             ctx.say(format!("no checkpoint in {}: starting a new run", run_dir.display()));
         }
+        // Before minutes of training, what stage 1 will likely flag after them (about 0.1-1 s).
+        if let Some(w) = super::coverage::hull_coverage(&views)?.and_then(|c| hull_coverage_warning(&c, views.len())) {
+            ctx.say(format!("WARNING: {w}"));
+        }
         let mut cfg = Stage1Config::for_scene(preset, opts.tracing, opts.init, &views, held.len(), scene.downscale);
         cfg.seed = opts.seed;
         cfg.keep_all_views = opts.keep_all_views;
@@ -613,7 +653,7 @@ pub fn train_stage1(
         "hull_init": hull_report,
         "mesh_init": mesh_report,
         "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr_pixels": HELD_OUT_PSNR_PIXELS, "psnr": ev.psnr, "mask_iou": ev.mask_iou, "per_view": ev.per_view, "seconds": t_eval.elapsed().as_secs_f64() },
-        "coverage": { "surface_points": coverage.surface_points, "seen_by_0": coverage.seen_by[0], "seen_by_1": coverage.seen_by[1], "seen_by_2": coverage.seen_by[2], "seen_by_3_or_more": coverage.seen_by[3], "below_three": coverage.below_three(), "median_views": coverage.median_views, "grid_nodes": coverage.grid_nodes, "seconds": t_cov.elapsed().as_secs_f64() },
+        "coverage": coverage.to_json(t_cov.elapsed().as_secs_f64()),
         "flags": flags,
         "weak_result": weak,
         "seconds": { "init": seconds_init, "train": seconds_train, "total": t_total.elapsed().as_secs_f64() },

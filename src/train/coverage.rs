@@ -46,6 +46,11 @@ impl SurfaceCoverage {
     pub fn below_three(&self) -> f64 {
         self.seen_by[0] + self.seen_by[1] + self.seen_by[2]
     }
+
+    /// The report's record (stage 1's `coverage`, `info`'s estimate).
+    pub fn to_json(&self, seconds: f64) -> serde_json::Value {
+        serde_json::json!({ "surface_points": self.surface_points, "seen_by_0": self.seen_by[0], "seen_by_1": self.seen_by[1], "seen_by_2": self.seen_by[2], "seen_by_3_or_more": self.seen_by[3], "below_three": self.below_three(), "median_views": self.median_views, "grid_nodes": self.grid_nodes, "weak": self.below_three() > WEAK_BELOW_THREE, "seconds": seconds })
+    }
 }
 
 /// Central-difference gradient of the grid's trilinear field at `p` (step `h`).
@@ -158,6 +163,31 @@ pub fn surface_coverage(grid: &SdfGrid, cameras: &[&Camera]) -> Result<SurfaceCo
     sorted.sort_unstable();
     let median_views = sorted.get(sorted.len() / 2).map_or(0.0, |&v| v as f64);
     Ok(SurfaceCoverage { surface_points: points.len(), seen_by, median_views, grid_nodes: grid.nodes() })
+}
+
+/// Voxels a side of the visual hull [`hull_coverage`] counts on (the coverage of a 64³ hull
+/// differs from a 96³ one by about a point on the example).
+const HULL_ESTIMATE_RES: usize = 64;
+
+/// Before any training (`info`): [`surface_coverage`] of the masks' visual hull (voxels seen
+/// inside the mask of at least half of `views`, as stage 1's hull initialisation carves it) by
+/// `views`' cameras. An estimate of what stage 1 will report: a hull has none of the object's
+/// concavities, so its surface is usually seen by more photos than the object's. `None` when the
+/// masks leave no voxel.
+pub fn hull_coverage(views: &[&crate::scene::View]) -> Result<Option<SurfaceCoverage>, BackendError> {
+    use super::hull::{carve, signed_distance, MaskView};
+    let adapters: Vec<super::preview::ViewAdapter> = views.iter().map(|v| super::preview::ViewAdapter::new(v)).collect();
+    let mv: Vec<&dyn MaskView> = adapters.iter().map(|a| a as &dyn MaskView).collect();
+    let res = HULL_ESTIMATE_RES;
+    let inside = carve(&mv, res, 1.0, 0.5, (views.len() / 2).max(1));
+    if !inside.contains(&true) {
+        return Ok(None);
+    }
+    let hull = super::preview::smooth(signed_distance(&inside, res, 1.0));
+    let f = |p: &[f32]| -> Result<Vec<f32>, BackendError> { Ok(p.chunks_exact(3).map(|q| hull.sample([q[0], q[1], q[2]])).collect()) };
+    let grid = SdfGrid::sample(&f, 1.0, res + 1)?;
+    let cameras: Vec<&Camera> = views.iter().map(|v| &v.camera).collect();
+    surface_coverage(&grid, &cameras).map(Some)
 }
 
 #[cfg(test)]
