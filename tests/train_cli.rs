@@ -384,12 +384,20 @@ fn bench_train_writes_its_figures_and_reports_a_failed_variant_instead_of_losing
     // points, and its summary row has the figures.
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("bench");
-    let tiny = ["bench", "train", "--variant", "fast-refined-sphere", "--max-iterations", "2", "--eval-every", "1", "--mesh-resolution", "24", "--downscale", "4", "--rays", "64", "--out"];
+    let tiny = ["bench", "train", "--variant", "fast-refined-sphere", "--max-iterations", "2", "--eval-every", "1", "--mesh-resolution", "24", "--downscale", "4", "--rays", "64", "--reference-steps", "40", "--out"];
     let o = pii(&[&tiny[..], &[out.to_str().unwrap()]].concat());
     assert!(o.status.success(), "{}", text(&o));
     let j: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("bench-train.json")).unwrap()).unwrap();
     let row = &j["summary"][0];
     assert!(row.get("error").is_none() && row["iterations"] == 2, "{row}");
+    // The ground truth through the same field and asset pipeline: even 40 fit steps from a sphere
+    // give a closer shape than 2 training steps do.
+    let r = &j["ground_truth_reference"][0];
+    assert_eq!(r["scene"], "example", "{r}");
+    assert_eq!(r["fit_steps"], 40, "{r}");
+    let (rc, vc) = (r["chamfer_rel"].as_f64().unwrap(), row["chamfer_rel"].as_f64().unwrap());
+    assert!(rc.is_finite() && rc < vc, "reference {rc} vs variant {vc}: {r}");
+    assert!(r["asset"]["triangles"].as_u64().unwrap() > 0 && r["asset"]["normal_consistency"].as_f64().unwrap() > 0.5, "{r}");
     let csv = std::fs::read_to_string(out.join("bench-train.csv")).unwrap();
     assert!(csv.contains("hull (preview)") && csv.lines().filter(|l| l.contains("fast-refined-sphere")).count() == 3, "{csv}");
     assert!(std::fs::read_to_string(out.join("bench-train.svg")).unwrap().contains("<svg"));

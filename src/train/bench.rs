@@ -59,6 +59,12 @@ pub struct BenchTrainArgs {
     /// Override any stage-1 setting by its name in run.json's config, e.g. `--set mask_weight=10`.
     #[arg(long = "set", value_name = "KEY=VALUE")]
     pub overrides: Vec<String>,
+    /// Fit steps of the ground-truth reference: the preset's SDF fitted to the true shape (as
+    /// `train --init-mesh` does) and measured as a trained field and as the mesh `export` ships,
+    /// the figures a perfect stage 1 would reach through the same field and asset pipeline
+    /// (default: the preset's `mesh_fit_steps`; 0 skips it).
+    #[arg(long)]
+    pub reference_steps: Option<u64>,
     /// After training, also mesh the SDF as `export` ships it (the scene's mesh resolution, closed,
     /// simplified) with these simplification error bounds in grid cells, and measure each
     /// (default: export's own bound only).
@@ -136,6 +142,25 @@ fn measure(backend: &Backend, f: &(dyn Fn(&[f32]) -> Result<Vec<f32>, crate::bac
 /// error bound) of a trained model, measured against `gt` (normalised frame): Chamfer relative to
 /// the GT's size, normal consistency of the triangles (as a renderer without vertex normals sees
 /// them) and with the shipped vertex normals (as a .glb shades), triangle count and the bound used.
+/// The ground-truth reference of a scene: the fast preset's SDF fitted for `steps` to the signed
+/// distance of `gt` (normalised frame, as `train --init-mesh`), then measured as a field (marched
+/// at `res`) and as the mesh `export` ships.
+fn reference(backend: &Backend, cfg: &Stage1Config, gt: &crate::eval::mesh::Mesh, gt_size: f64, steps: u64, res: usize) -> anyhow::Result<serde_json::Value> {
+    let t = Instant::now();
+    let grid_res = cfg.sizes.mesh_resolution.clamp(96, 192);
+    let grid = super::hull::mesh_signed_distance(gt, grid_res, cfg.trace.bound);
+    let mut tr = Trainer::new(cfg.clone())?;
+    let fit_loss = tr.fit_to_grid(backend, &grid, steps, |_, _| {})?;
+    tr.sync_host()?;
+    let f = |p: &[f32]| tr.model().sdf(backend, p);
+    let (c, n) = measure(backend, &f, gt, gt_size, res);
+    let asset = measure_asset(backend, tr.model(), &super::cli::trained_mesh_config(&cfg.sizes, None, None), gt, gt_size)?;
+    Ok(serde_json::json!({
+        "fit_steps": steps, "fit_loss": fit_loss, "signed_distance_resolution": grid_res,
+        "chamfer_rel": c, "normal_consistency": n, "asset": asset, "seconds": t.elapsed().as_secs_f64(),
+    }))
+}
+
 fn measure_asset(backend: &Backend, model: &super::stage1::Model, mesh_cfg: &crate::mesh::MeshConfig, gt: &crate::eval::mesh::Mesh, gt_size: f64) -> anyhow::Result<serde_json::Value> {
     let t = Instant::now();
     let sdf = super::cli::TrainedSdf::new(backend, model, glam::DMat3::IDENTITY)?;
@@ -186,6 +211,7 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
     let parsed: Vec<_> = variants.iter().map(|v| parse_variant(v)).collect::<anyhow::Result<_>>()?;
     let mut points: Vec<CurvePoint> = Vec::new();
     let mut summary = Vec::new();
+    let mut references: Vec<serde_json::Value> = Vec::new();
     // What the files hold, rewritten after every variant.
     let mut json = serde_json::Value::Null;
     for scene_path in &scenes {
@@ -230,6 +256,23 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
                 init_info.concavities.carved_voxels, init_info.concavities.rounds, 100.0 * cc
             ));
             points.push(CurvePoint { scene: sname.clone(), variant: "hull + concavities".into(), backend: "cpu".into(), step: 0, wall_seconds: init_secs, chamfer_rel: cc, normal_consistency: cn });
+        }
+
+        // The ground truth through the same field and asset pipeline: splits a variant's shortfall
+        // into its geometry's and the pipeline's (the hash grid, meshing, simplification).
+        let steps = args.reference_steps.unwrap_or(base_cfg.mesh_fit_steps);
+        if steps > 0 {
+            let rec = reference(&backend, &base_cfg, &gt, gt_size, steps, args.mesh_resolution).unwrap_or_else(|e| serde_json::json!({ "error": format!("{e:#}") }));
+            let f = |k: &str| rec[k].as_f64().unwrap_or(f64::NAN);
+            let a = &rec["asset"];
+            let fa = |k: &str| a[k].as_f64().unwrap_or(f64::NAN);
+            ctx.say(format!(
+                "{sname}: ground truth through the pipeline ({steps} fit steps): field Chamfer {:.3}%, NC {:.4}; asset mesh {} triangles, Chamfer {:.3}%, NC {:.4} (faces) / {:.4} (shading normals)",
+                100.0 * f("chamfer_rel"), f("normal_consistency"), a["triangles"], 100.0 * fa("chamfer_rel"), fa("normal_consistency"), fa("shading_normal_consistency")
+            ));
+            let mut rec = rec;
+            rec["scene"] = sname.clone().into();
+            references.push(rec);
         }
 
         for (name, &(preset, mode, init)) in variants.iter().zip(&parsed) {
@@ -319,7 +362,7 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
                 serde_json::json!({ "scene": sname, "variant": name, "backend": backend.describe(), "error": format!("{e:#}") })
             });
             summary.push(row);
-            json = write_outputs(&args.out, &summary, &points)?;
+            json = write_outputs(&args.out, &summary, &references, &points)?;
         }
     }
     if !summary.is_empty() && summary.iter().all(|s| s.get("error").is_some()) {
@@ -334,13 +377,13 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
 }
 
 /// Write `bench-train.{csv,json,svg}` from what is measured so far; returns the JSON.
-fn write_outputs(out: &Path, summary: &[serde_json::Value], points: &[CurvePoint]) -> anyhow::Result<serde_json::Value> {
+fn write_outputs(out: &Path, summary: &[serde_json::Value], references: &[serde_json::Value], points: &[CurvePoint]) -> anyhow::Result<serde_json::Value> {
     let mut csv = String::from("scene,variant,backend,step,wall_seconds,chamfer_rel,normal_consistency\n");
     for p in points {
         csv.push_str(&format!("{},{},{},{},{:.3},{:.6},{:.5}\n", p.scene, p.variant, p.backend, p.step, p.wall_seconds, p.chamfer_rel, p.normal_consistency));
     }
     crate::util::atomic_write(&out.join("bench-train.csv"), csv.as_bytes())?;
-    let json = serde_json::json!({ "machine_threads": rayon::current_num_threads(), "summary": summary, "points": points });
+    let json = serde_json::json!({ "machine_threads": rayon::current_num_threads(), "summary": summary, "ground_truth_reference": references, "points": points });
     crate::util::atomic_write(&out.join("bench-train.json"), serde_json::to_string_pretty(&json)?.as_bytes())?;
     crate::util::atomic_write(&out.join("bench-train.svg"), chart(points)?.as_bytes())?;
     Ok(json)
