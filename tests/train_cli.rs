@@ -384,7 +384,7 @@ fn bench_train_writes_its_figures_and_reports_a_failed_variant_instead_of_losing
     // points, and its summary row has the figures.
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("bench");
-    let tiny = ["bench", "train", "--variant", "fast-refined-sphere", "--max-iterations", "2", "--eval-every", "1", "--mesh-resolution", "24", "--downscale", "4", "--rays", "64", "--reference-steps", "40", "--out"];
+    let tiny = ["bench", "train", "--variant", "fast-refined-sphere", "--max-iterations", "2", "--eval-every", "1", "--mesh-resolution", "24", "--downscale", "4", "--rays", "64", "--reference-steps", "40", "--asset-resolution", "32", "--out"];
     let o = pii(&[&tiny[..], &[out.to_str().unwrap()]].concat());
     assert!(o.status.success(), "{}", text(&o));
     let j: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("bench-train.json")).unwrap()).unwrap();

@@ -144,17 +144,21 @@ fn measure(backend: &Backend, f: &(dyn Fn(&[f32]) -> Result<Vec<f32>, crate::bac
 /// them) and with the shipped vertex normals (as a .glb shades), triangle count and the bound used.
 /// The ground-truth reference of a scene: the fast preset's SDF fitted for `steps` to the signed
 /// distance of `gt` (normalised frame, as `train --init-mesh`), then measured as a field (marched
-/// at `res`) and as the mesh `export` ships.
-fn reference(backend: &Backend, cfg: &Stage1Config, gt: &crate::eval::mesh::Mesh, gt_size: f64, steps: u64, res: usize) -> anyhow::Result<serde_json::Value> {
+/// at `res`) and as the mesh `export` ships (at `asset_res`, `--asset-resolution`'s first, where
+/// given).
+fn reference(backend: &Backend, cfg: &Stage1Config, gt: &crate::eval::mesh::Mesh, gt_size: f64, steps: u64, res: usize, asset_res: Option<usize>) -> anyhow::Result<serde_json::Value> {
     let t = Instant::now();
-    let grid_res = cfg.sizes.mesh_resolution.clamp(96, 192);
+    // The true signed distance at the resolution the asset is meshed at (the example's 96).
+    let shipped = super::cli::trained_mesh_config(&cfg.sizes, None, None);
+    let asset_res = asset_res.unwrap_or(shipped.resolution);
+    let grid_res = asset_res.clamp(16, 384);
     let grid = super::hull::mesh_signed_distance(gt, grid_res, cfg.trace.bound);
     let mut tr = Trainer::new(cfg.clone())?;
     let fit_loss = tr.fit_to_grid(backend, &grid, steps, |_, _| {})?;
     tr.sync_host()?;
     let f = |p: &[f32]| tr.model().sdf(backend, p);
     let (c, n) = measure(backend, &f, gt, gt_size, res);
-    let asset = measure_asset(backend, tr.model(), &super::cli::trained_mesh_config(&cfg.sizes, None, None), gt, gt_size)?;
+    let asset = measure_asset(backend, tr.model(), &crate::mesh::MeshConfig { resolution: asset_res, ..shipped }, gt, gt_size)?;
     Ok(serde_json::json!({
         "fit_steps": steps, "fit_loss": fit_loss, "signed_distance_resolution": grid_res,
         "chamfer_rel": c, "normal_consistency": n, "asset": asset, "seconds": t.elapsed().as_secs_f64(),
@@ -262,7 +266,7 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
         // into its geometry's and the pipeline's (the hash grid, meshing, simplification).
         let steps = args.reference_steps.unwrap_or(base_cfg.mesh_fit_steps);
         if steps > 0 {
-            let rec = reference(&backend, &base_cfg, &gt, gt_size, steps, args.mesh_resolution).unwrap_or_else(|e| serde_json::json!({ "error": format!("{e:#}") }));
+            let rec = reference(&backend, &base_cfg, &gt, gt_size, steps, args.mesh_resolution, args.asset_resolution.first().copied()).unwrap_or_else(|e| serde_json::json!({ "error": format!("{e:#}") }));
             let f = |k: &str| rec[k].as_f64().unwrap_or(f64::NAN);
             let a = &rec["asset"];
             let fa = |k: &str| a[k].as_f64().unwrap_or(f64::NAN);
