@@ -58,7 +58,7 @@ fn batch() -> Batch {
 }
 
 fn settings() -> LossSettings {
-    LossSettings { alpha: 10.0, eikonal_weight: 0.1, mask_weight: 1.0, eikonal_points: 4, mask_samples: 40, near_surface_sigma: 0.05, smoothness_weight: 0.0, normal_gradient_scale: 1.0, colour_moves_point: true, surface_eikonal: true, out_of_mask_min_sdf: true }
+    LossSettings { alpha: 10.0, eikonal_weight: 0.1, mask_weight: 1.0, eikonal_points: 4, mask_samples: 40, near_surface_sigma: 0.05, smoothness_weight: 0.0, normal_gradient_scale: 1.0, colour_moves_point: true, grazing_cos: 0.05, surface_eikonal: true, out_of_mask_min_sdf: true }
 }
 
 /// The differentiable pixel: eikonal at the uniform points only (the eikonal at surface points
@@ -325,7 +325,7 @@ fn learn_a_silhouette_with(tracing: pii_bake::render::TraceConfig, volume: bool)
     let wrong_before = eval(&t, &mut pii_bake::util::rng(99));
     for step in 0..25 {
         let bt = make_batch(&mut rng);
-        let ls = LossSettings { alpha: 50.0, eikonal_weight: 0.1, mask_weight: 100.0, eikonal_points: 64, mask_samples: 16, near_surface_sigma: 0.02, smoothness_weight: 0.0, normal_gradient_scale: 1.0, colour_moves_point: true, surface_eikonal: true, out_of_mask_min_sdf: false };
+        let ls = LossSettings { alpha: 50.0, eikonal_weight: 0.1, mask_weight: 100.0, eikonal_points: 64, mask_samples: 16, near_surface_sigma: 0.02, smoothness_weight: 0.0, normal_gradient_scale: 1.0, colour_moves_point: true, grazing_cos: 0.05, surface_eikonal: true, out_of_mask_min_sdf: false };
         let g = if volume {
             let vs = VolumeSettings { sharpness: 30.0, coarse: 32, fine: 16, mask_weight: 1.0, bound: 1.0 };
             let vsm = volume_samples(&b, t.model(), &bt, &vs, 0.5).unwrap();
@@ -448,6 +448,8 @@ fn ablation_switches_cut_only_their_path_into_the_sdf() {
         LossSettings { normal_gradient_scale: 0.0, ..pixel_settings() },
         LossSettings { normal_gradient_scale: 0.3, ..pixel_settings() },
         LossSettings { colour_moves_point: false, ..pixel_settings() },
+        // Only the points a ray meets within about 2.6 degrees of head-on move.
+        LossSettings { grazing_cos: 0.999, ..pixel_settings() },
     ] {
         let cut = loss_and_grad(&b, &model, &cfg.trace, &batch, &EIK, &ls, 0.0).unwrap();
         assert_eq!(cut.stats.loss, full.stats.loss);
@@ -661,4 +663,32 @@ fn the_fast_preset_passes_over_a_captures_pixels_once_within_its_step_bounds() {
         // The paper preset keeps its own schedule.
         assert_eq!(Stage1Config::for_scene(Preset::Paper, TraceMode::Refined, InitMode::Hull, &many, 0, 1).iterations, 2000);
     }
+}
+
+#[test]
+fn grazing_hits_move_no_point_past_the_presets_cosine_and_old_runs_keep_idrs() {
+    // The fast preset moves no surface point a ray meets within 78 degrees of grazing
+    // (`-grad f . v <= 0.2`); the paper preset and run files written before the setting existed
+    // keep 0.05; a cosine of 1 or more would move nothing and is refused.
+    let fast = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Hull, &[], 0, 1);
+    assert_eq!(fast.grazing_cos, 0.2);
+    assert_eq!(Stage1Config::for_scene(Preset::Paper, TraceMode::Refined, InitMode::Hull, &[], 0, 1).grazing_cos, 0.05);
+    let mut old = serde_json::to_value(&fast).unwrap();
+    old.as_object_mut().unwrap().remove("grazing_cos");
+    let read: Stage1Config = serde_json::from_value(old).unwrap();
+    assert_eq!(read.grazing_cos, 0.05);
+    for bad in [1.0f32, -0.1, f32::NAN] {
+        let cfg = Stage1Config { grazing_cos: bad, ..fast.clone() };
+        assert!(cfg.validate().unwrap_err().to_string().contains("grazing_cos"), "{bad}");
+    }
+    // Between the two, the gate is the only difference: the same loss, a different SDF gradient
+    // wherever a hit lies between the cosines, and the same gradient where none does.
+    let b = Backend::cpu();
+    let cfg = tiny_config();
+    let model = Model::new(&cfg).unwrap();
+    let batch = batch();
+    let at = |c: f32| loss_and_grad(&b, &model, &cfg.trace, &batch, &EIK, &LossSettings { grazing_cos: c, ..pixel_settings() }, 0.0).unwrap();
+    let (a, z) = (at(0.05), at(0.06));
+    assert_eq!(a.stats.loss, z.stats.loss);
+    assert_eq!(a.d_sdf, z.d_sdf, "no hit of the batch lies between 0.05 and 0.06");
 }
