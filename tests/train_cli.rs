@@ -128,6 +128,10 @@ fn bad_scenes_and_folders_give_clear_errors() {
     assert_eq!(o.status.code(), Some(1), "{}", text(&o));
     let t = text(&o);
     assert!(t.contains(".png") && t.contains("mask"), "{t}");
+    // `info` still describes such a scene and says why it gives no coverage estimate.
+    let o = pii(&["info", nomask.to_str().unwrap(), "--downscale", "4"]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(text(&o).contains("coverage (est.)   - (needs a mask on every training view"), "{}", text(&o));
 
     // A camera that looks away from the object.
     let away = dir.path().join("away");

@@ -667,7 +667,7 @@ fn the_fast_preset_passes_over_a_captures_pixels_once_within_its_step_bounds() {
 
 #[test]
 fn grazing_hits_move_no_point_past_the_presets_cosine_and_old_runs_keep_idrs() {
-    // The fast preset moves no surface point a ray meets within 78 degrees of grazing
+    // The fast preset moves no surface point a ray meets more than 78 degrees off its normal
     // (`-grad f . v <= 0.2`); the paper preset and run files written before the setting existed
     // keep 0.05; a cosine of 1 or more would move nothing and is refused.
     let fast = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Hull, &[], 0, 1);

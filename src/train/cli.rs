@@ -204,7 +204,7 @@ pub fn info_coverage(scene: &Scene, ctx: &Context) -> anyhow::Result<()> {
     let (views, _) = train_views(scene);
     let t = Instant::now();
     let Some(c) = super::coverage::hull_coverage(&views)? else {
-        ctx.say("coverage (est.)   - (the masks leave no visual hull)");
+        ctx.say("coverage (est.)   - (needs a mask on every training view, and masks that leave a visual hull)");
         return Ok(());
     };
     let mut rec = c.to_json(t.elapsed().as_secs_f64());
