@@ -364,7 +364,10 @@ impl Stage1Config {
             // 0.9852, 0.179% / 0.9813, 28.34 -> 0.165% / 0.9858, 0.173% / 0.9824, 28.53; glossy
             // 0.253% / 0.9772, 0.248% / 0.9753, 22.27 -> 0.224% / 0.9797, 0.230% / 0.9778, 22.39;
             // bowl 1.390% / 0.9376, 1.393% / 0.9356, 27.44 -> 1.354% / 0.9399, 1.352% / 0.9388,
-            // 28.19. 0.35 on the example: 0.171% / 0.9858, 0.182% / 0.9814, 28.41.
+            // 28.19. 0.35 on the example: 0.171% / 0.9858, 0.182% / 0.9814, 28.41. Real captures
+            // (`train --stage geometry --iterations 500`), held-out (DTU: training-view) PSNR / mask
+            // IoU: the Ethiopian head 24.04 dB / 0.9800 -> 24.04 / 0.9802, DTU scan37 19.11 /
+            // 0.9669 -> 19.22 / 0.9680.
             grazing_cos: 0.2,
             // Coarse to fine from a sphere; a hull fit has already set every level.
             coarse_levels: if init == InitMode::Hull { 1.0 } else { 0.5 },
