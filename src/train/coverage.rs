@@ -166,7 +166,7 @@ pub fn surface_coverage(grid: &SdfGrid, cameras: &[&Camera]) -> Result<SurfaceCo
 }
 
 /// Voxels a side of the visual hull [`hull_coverage`] counts on (at 64³ the estimate lies within
-/// 2.5 points of stage 1's count on the trained surface on six captures, README).
+/// 3 points of stage 1's count on the trained surface on six captures, README).
 const HULL_ESTIMATE_RES: usize = 64;
 
 /// Before any training (`info`): [`surface_coverage`] of the masks' visual hull (voxels seen
