@@ -14,8 +14,8 @@ use glam::DVec3;
 use serde::Serialize;
 
 use super::cli::{evaluate_views, train_views};
-use super::hull::{carve, signed_distance, MaskView};
-use super::preview::{smooth, ViewAdapter};
+use super::hull::signed_distance;
+use super::preview::{masks_hull, smooth};
 use super::stage1::{InitMode, Preset, Stage1Config, TrainData, Trainer};
 use crate::backend::Backend;
 use crate::context::Context;
@@ -236,11 +236,9 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
 
         // Baseline: the visual hull, as the preview bake carves it.
         let t = Instant::now();
-        let adapters: Vec<ViewAdapter> = views.iter().map(|v| ViewAdapter::new(v)).collect();
-        let mv: Vec<&dyn MaskView> = adapters.iter().map(|a| a as &dyn MaskView).collect();
         let base_cfg = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Hull, &views, held.len(), scene.downscale);
         let hres = base_cfg.sizes.hull_resolution;
-        let grid = smooth(signed_distance(&carve(&mv, hres, 1.0, 0.5, (views.len() / 2).max(1)), hres, 1.0));
+        let grid = smooth(signed_distance(&masks_hull(&views, hres), hres, 1.0));
         let hull_secs = t.elapsed().as_secs_f64();
         let hf = |p: &[f32]| Ok(p.chunks_exact(3).map(|q| grid.sample([q[0], q[1], q[2]])).collect());
         let (hc, hn) = measure(&backend, &hf, &gt, gt_size, args.mesh_resolution);

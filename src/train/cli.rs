@@ -12,8 +12,8 @@ use anyhow::Context as _;
 use glam::{DMat3, DVec3};
 use serde::{Deserialize, Serialize};
 
-use super::hull::{carve, signed_distance, MaskView};
-use super::preview::{asset_rotation, smooth, ViewAdapter};
+use super::hull::signed_distance;
+use super::preview::{asset_rotation, masks_hull, smooth, ViewAdapter};
 use super::stage1::{scene_key, InitMode, Model, Preset, Stage1Config, StepStats, TrainData, Trainer, CHECKPOINT};
 use crate::backend::gpu::KernelTime;
 use crate::backend::{Backend, BackendError};
@@ -137,9 +137,8 @@ const CONCAVITY_RES: usize = 96;
 /// smoothed signed distance grid. None when the masks leave no voxel.
 pub fn hull_init_grid(views: &[&View], cfg: &Stage1Config) -> Option<(super::hull::Grid3, HullInit)> {
     let adapters: Vec<ViewAdapter> = views.iter().map(|v| ViewAdapter::new(v)).collect();
-    let mv: Vec<&dyn MaskView> = adapters.iter().map(|a| a as &dyn MaskView).collect();
     let res = cfg.sizes.hull_resolution;
-    let visual_hull = |res: usize| carve(&mv, res, 1.0, 0.5, (views.len() / 2).max(1));
+    let visual_hull = |res: usize| masks_hull(views, res);
     let mut inside = visual_hull(res);
     if !inside.contains(&true) {
         return None;
@@ -225,7 +224,7 @@ pub fn info_coverage(scene: &Scene, ctx: &Context) -> anyhow::Result<()> {
 /// The warning for a visual hull that too few photos see ([`info_coverage`], and a new stage-1
 /// run before it trains), or None.
 fn hull_coverage_warning(c: &super::coverage::SurfaceCoverage, photos: usize) -> Option<String> {
-    (c.below_three() > super::coverage::WEAK_BELOW_THREE).then(|| {
+    c.weak().then(|| {
         format!(
             "{:.0}% of the masks' visual hull is seen by fewer than three of the {photos} training photos: stage 1 will likely flag the result weak; photograph the object from more sides",
             100.0 * c.below_three()
@@ -625,7 +624,7 @@ pub fn train_stage1(
     if trainer.skipped * 10 > trainer.step.max(1) {
         flags.push(format!("{} of {} steps skipped for non-finite gradients", trainer.skipped, trainer.step));
     }
-    if coverage.below_three() > super::coverage::WEAK_BELOW_THREE {
+    if coverage.weak() {
         flags.push(format!(
             "{:.0}% of the surface is seen by fewer than three training photos ({} photos): its shape and material there rest on too few views; photograph it from more sides",
             100.0 * coverage.below_three(),

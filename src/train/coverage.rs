@@ -47,9 +47,14 @@ impl SurfaceCoverage {
         self.seen_by[0] + self.seen_by[1] + self.seen_by[2]
     }
 
+    /// Too few photos see too much of the surface: more than [`WEAK_BELOW_THREE`] of it below three.
+    pub fn weak(&self) -> bool {
+        self.below_three() > WEAK_BELOW_THREE
+    }
+
     /// The report's record (stage 1's `coverage`, `info`'s estimate).
     pub fn to_json(&self, seconds: f64) -> serde_json::Value {
-        serde_json::json!({ "surface_points": self.surface_points, "seen_by_0": self.seen_by[0], "seen_by_1": self.seen_by[1], "seen_by_2": self.seen_by[2], "seen_by_3_or_more": self.seen_by[3], "below_three": self.below_three(), "median_views": self.median_views, "grid_nodes": self.grid_nodes, "weak": self.below_three() > WEAK_BELOW_THREE, "seconds": seconds })
+        serde_json::json!({ "surface_points": self.surface_points, "seen_by_0": self.seen_by[0], "seen_by_1": self.seen_by[1], "seen_by_2": self.seen_by[2], "seen_by_3_or_more": self.seen_by[3], "below_three": self.below_three(), "median_views": self.median_views, "grid_nodes": self.grid_nodes, "weak": self.weak(), "seconds": seconds })
     }
 }
 
@@ -175,18 +180,15 @@ const HULL_ESTIMATE_RES: usize = 64;
 /// concavities, so its surface is usually seen by more photos than the object's. `None` when a
 /// view has no mask or the masks leave no voxel.
 pub fn hull_coverage(views: &[&crate::scene::View]) -> Result<Option<SurfaceCoverage>, BackendError> {
-    use super::hull::{carve, signed_distance, MaskView};
     if views.is_empty() || views.iter().any(|v| v.mask.is_none()) {
         return Ok(None);
     }
-    let adapters: Vec<super::preview::ViewAdapter> = views.iter().map(|v| super::preview::ViewAdapter::new(v)).collect();
-    let mv: Vec<&dyn MaskView> = adapters.iter().map(|a| a as &dyn MaskView).collect();
     let res = HULL_ESTIMATE_RES;
-    let inside = carve(&mv, res, 1.0, 0.5, (views.len() / 2).max(1));
+    let inside = super::preview::masks_hull(views, res);
     if !inside.contains(&true) {
         return Ok(None);
     }
-    let hull = super::preview::smooth(signed_distance(&inside, res, 1.0));
+    let hull = super::preview::smooth(super::hull::signed_distance(&inside, res, 1.0));
     let f = |p: &[f32]| -> Result<Vec<f32>, BackendError> { Ok(p.chunks_exact(3).map(|q| hull.sample([q[0], q[1], q[2]])).collect()) };
     let grid = SdfGrid::sample(&f, 1.0, res + 1)?;
     let cameras: Vec<&Camera> = views.iter().map(|v| &v.camera).collect();

@@ -402,7 +402,6 @@ impl StepBackend {
 }
 
 /// Train stage 2 on the stage-1 run in `run_dir`.
-#[allow(clippy::too_many_arguments)]
 /// `trained`: the stage-1 model this process has just trained into `run_dir`, if any, whose
 /// sampled SDF grid stage 2 then takes instead of sampling it again.
 #[allow(clippy::too_many_arguments)]

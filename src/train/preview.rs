@@ -190,6 +190,14 @@ pub fn asset_rotation(scene: &Scene) -> DMat3 {
     DMat3::from_quat(DQuat::from_rotation_arc(up, DVec3::Y))
 }
 
+/// The visual hull of `views`' masks as stage 1's hull initialisation carves it: the voxels of the
+/// unit cube (`res` a side) inside the mask of at least half of the views.
+pub fn masks_hull(views: &[&View], res: usize) -> Vec<bool> {
+    let adapters: Vec<ViewAdapter> = views.iter().map(|v| ViewAdapter::new(v)).collect();
+    let mv: Vec<&dyn MaskView> = adapters.iter().map(|a| a as &dyn MaskView).collect();
+    carve(&mv, res, 1.0, 0.5, (views.len() / 2).max(1))
+}
+
 /// One separable [1, 2, 1]/4 pass per axis over the distance grid: rounds off the voxel
 /// staircase of the carved hull (which otherwise makes the mesh bumpy and hard to simplify)
 /// while keeping the zero level within a fraction of a voxel.
