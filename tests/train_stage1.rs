@@ -692,3 +692,56 @@ fn grazing_hits_move_no_point_past_the_presets_cosine_and_old_runs_keep_idrs() {
     assert_eq!(a.stats.loss, z.stats.loss);
     assert_eq!(a.d_sdf, z.d_sdf, "no hit of the batch lies between 0.05 and 0.06");
 }
+
+#[test]
+fn photo_consistency_moves_only_the_sdf_fades_out_and_old_runs_leave_it_off() {
+    let fast = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Hull, &[], 0, 1);
+    assert_eq!((fast.photo_consistency, fast.photo_consistency_end), (4.0, 0.5));
+    assert_eq!(Stage1Config::for_scene(Preset::Paper, TraceMode::Refined, InitMode::Hull, &[], 0, 1).photo_consistency, 0.0);
+    // Run files written before the term existed train without it.
+    let mut old = serde_json::to_value(&fast).unwrap();
+    old.as_object_mut().unwrap().remove("photo_consistency");
+    old.as_object_mut().unwrap().remove("photo_consistency_end");
+    let read: Stage1Config = serde_json::from_value(old).unwrap();
+    assert_eq!((read.photo_consistency, read.photo_consistency_end), (0.0, 1.0));
+    for (w, end) in [(-1.0f32, 0.5f32), (f32::NAN, 0.5), (4.0, 0.0), (4.0, 1.5)] {
+        let cfg = Stage1Config { photo_consistency: w, photo_consistency_end: end, ..fast.clone() };
+        assert!(cfg.validate().unwrap_err().to_string().contains("photo_consistency"), "{w} {end}");
+    }
+    // The weight falls linearly to zero at the end fraction.
+    let n = fast.iterations;
+    assert_eq!(fast.photo_consistency_at(0), 4.0);
+    assert!((fast.photo_consistency_at(n / 4) - 2.0).abs() < 0.05);
+    assert_eq!(fast.photo_consistency_at(n / 2), 0.0);
+    assert_eq!(fast.photo_consistency_at(n), 0.0);
+
+    // One step on the bundled example (read at 1/4, a tiny field) from the same parameters, the
+    // term on and off: the same batch and colour, eikonal and mask terms; a photo term on top;
+    // the SDF moved differently and the radiance net alike.
+    use pii_bake::scene::{Downscale, ReadOptions};
+    use pii_bake::train::stage1::TrainData;
+    let b = Backend::cpu();
+    let ex = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/example");
+    let scene = pii_bake::scene::load(&ex, &ReadOptions { downscale: Downscale::By(4), keep_all_views: false }).unwrap();
+    let (views, _) = pii_bake::train::cli::train_views(&scene);
+    let data = TrainData::new(&views, 1.0).unwrap();
+    let config = |w: f32| {
+        let mut cfg = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Sphere, &views, 0, 4);
+        cfg.field.encoding = FieldEncoding::HashGrid { levels: 4, features_per_level: 2, log2_table_size: 14, base_resolution: 8, growth: 2.0 };
+        cfg.field.widths = vec![16];
+        cfg.rays = 256;
+        cfg.eikonal_points = 64;
+        cfg.radiance_warmup = 0.0;
+        cfg.photo_consistency = w;
+        cfg
+    };
+    let (mut on, mut off) = (Trainer::new(config(4.0)).unwrap(), Trainer::new(config(0.0)).unwrap());
+    let (a, z) = (on.train_step(&b, &data).unwrap(), off.train_step(&b, &data).unwrap());
+    assert!(a.applied && z.applied && a.surface_rays > 20, "{a:?}");
+    assert!(a.photo > 0.0 && a.photo.is_finite() && z.photo == 0.0, "photo term {} / {}", a.photo, z.photo);
+    assert_eq!((a.rgb, a.eikonal, a.mask), (z.rgb, z.eikonal, z.mask));
+    assert!((a.loss - z.loss - a.photo).abs() < 1e-9 * a.loss.max(1.0));
+    assert_ne!(on.model().sdf_params, off.model().sdf_params);
+    assert_eq!(on.model().radiance_params, off.model().radiance_params);
+    assert!(on.model().sdf_params.iter().all(|v| v.is_finite()));
+}

@@ -261,8 +261,8 @@ pub(crate) fn read_curve(path: &Path, upto: u64, max_bytes: u64) -> Vec<String> 
 
 fn curve_line(s: &StepStats, secs: f64) -> String {
     format!(
-        "{},{:.6e},{:.6e},{:.6e},{:.6e},{:.3},{},{},{},{:.4e},{},{:.4},{:.6e}",
-        s.step, s.loss, s.rgb, s.eikonal, s.mask, s.psnr, s.surface_rays, s.mask_rays, s.alpha, s.lr_field, s.applied, secs, s.smoothness
+        "{},{:.6e},{:.6e},{:.6e},{:.6e},{:.3},{},{},{},{:.4e},{},{:.4},{:.6e},{:.6e}",
+        s.step, s.loss, s.rgb, s.eikonal, s.mask, s.psnr, s.surface_rays, s.mask_rays, s.alpha, s.lr_field, s.applied, secs, s.smoothness, s.photo
     )
 }
 
@@ -282,7 +282,7 @@ pub(crate) fn write_curve(path: &Path, header: &str, lines: &[String]) -> Result
     crate::util::atomic_write(path, s.as_bytes())
 }
 
-const CURVE_HEADER: &str = "step,loss,rgb,eikonal,mask,psnr,surface_rays,mask_rays,alpha,lr,applied,seconds,smoothness";
+const CURVE_HEADER: &str = "step,loss,rgb,eikonal,mask,psnr,surface_rays,mask_rays,alpha,lr,applied,seconds,smoothness,photo";
 
 /// The training loop's progress bar (position, rate and ETA; the caller sets the message).
 pub(crate) fn training_progress(ctx: &Context, len: u64, label: &str) -> indicatif::ProgressBar {
@@ -576,7 +576,8 @@ pub fn train_stage1(
         let its = (trainer.step - step0) as f64 / t_loop.elapsed().as_secs_f64().max(1e-9);
         pb.set_position(trainer.step);
         let smooth = if cfg.smoothness_weight > 0.0 { format!(" smooth {:.4}", s.smoothness) } else { String::new() };
-        pb.set_message(format!("loss {:.4} (rgb {:.4} eik {:.4} mask {:.4}{smooth}) psnr {:.1} {:.2} it/s", s.loss, s.rgb, s.eikonal, s.mask, s.psnr, its));
+        let photo = if cfg.photo_consistency > 0.0 { format!(" photo {:.4}", s.photo) } else { String::new() };
+        pb.set_message(format!("loss {:.4} (rgb {:.4} eik {:.4} mask {:.4}{smooth}{photo}) psnr {:.1} {:.2} it/s", s.loss, s.rgb, s.eikonal, s.mask, s.psnr, its));
         ctx.emit("progress", serde_json::json!({ "stage": "geometry", "iterations": cfg.iterations, "it_per_s": its, "skipped": trainer.skipped, "stats": s }));
         last = s;
         let interrupted = stop.load(Ordering::SeqCst);

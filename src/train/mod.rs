@@ -7,6 +7,7 @@ pub mod cli;
 pub mod coverage;
 pub mod hull;
 pub mod material;
+pub mod multiview;
 pub mod photo;
 pub mod preview;
 pub mod relight;
