@@ -7,7 +7,7 @@ use pii_bake::backend::Backend;
 use pii_bake::nn::field::{FieldEncoding, SdfFieldConfig};
 use pii_bake::nn::mlp::Activation;
 use pii_bake::render::{trace, Rays, TraceMode};
-use pii_bake::train::stage1::{loss_and_grad, volume_loss_and_grad, volume_samples, Batch, InitMode, LossSettings, Model, Preset, Stage1Config, Trainer, VolumeSettings};
+use pii_bake::train::stage1::{loss_and_grad, volume_loss_and_grad, volume_samples, Batch, InitMode, LossSettings, Model, Preset, Stage1Config, TrainData, Trainer, VolumeSettings};
 
 fn tiny_config() -> Stage1Config {
     let mut cfg = Stage1Config::for_scene(Preset::Fast, TraceMode::Classic, InitMode::Sphere, &[], 0, 1);
@@ -578,26 +578,36 @@ fn the_device_optimiser_follows_the_host_one_without_moving_the_grid_across_the_
     assert!(t.model().sdf_params.iter().all(|v| v.is_finite()) && t.model().sdf_params != init);
 }
 
+/// The bundled example read at 1/4 of its resolution.
+fn example_at_quarter() -> pii_bake::scene::Scene {
+    use pii_bake::scene::{Downscale, ReadOptions};
+    let ex = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/example");
+    pii_bake::scene::load(&ex, &ReadOptions { downscale: Downscale::By(4), keep_all_views: false }).unwrap()
+}
+
+/// The fast preset for `views` with a tiny hash-grid field, 64 eikonal points and no warm-up.
+fn tiny_fast_config(views: &[&pii_bake::scene::View]) -> Stage1Config {
+    let mut cfg = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Sphere, views, 0, 4);
+    cfg.field.encoding = FieldEncoding::HashGrid { levels: 4, features_per_level: 2, log2_table_size: 14, base_resolution: 8, growth: 2.0 };
+    cfg.field.widths = vec![16];
+    cfg.eikonal_points = 64;
+    cfg.radiance_warmup = 0.0;
+    cfg
+}
+
 #[test]
 fn a_wgpu_training_step_keeps_the_sdf_on_the_device_and_a_checkpoint_resumes_it() {
     // Photometric steps on the bundled example (read at 1/4, a tiny field, 64 rays) on lavapipe:
     // the device optimiser's steps follow the host optimiser's, a checkpoint taken between steps
     // carries the device's parameters and Adam moments, and the resumed run's next step is the
     // straight run's.
-    use pii_bake::scene::{Downscale, ReadOptions};
-    use pii_bake::train::stage1::TrainData;
     let gpu = lavapipe();
-    let ex = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/example");
-    let scene = pii_bake::scene::load(&ex, &ReadOptions { downscale: Downscale::By(4), keep_all_views: false }).unwrap();
+    let scene = example_at_quarter();
     let (views, _) = pii_bake::train::cli::train_views(&scene);
     let data = TrainData::new(&views, 1.0).unwrap();
     let config = |device_optimiser: bool| {
-        let mut cfg = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Sphere, &views, 0, 4);
-        cfg.field.encoding = FieldEncoding::HashGrid { levels: 4, features_per_level: 2, log2_table_size: 14, base_resolution: 8, growth: 2.0 };
-        cfg.field.widths = vec![16];
+        let mut cfg = tiny_fast_config(&views);
         cfg.rays = 64;
-        cfg.eikonal_points = 64;
-        cfg.radiance_warmup = 0.0;
         cfg.device_optimiser = device_optimiser;
         cfg
     };
@@ -718,20 +728,13 @@ fn photo_consistency_moves_only_the_sdf_fades_out_and_old_runs_leave_it_off() {
     // One step on the bundled example (read at 1/4, a tiny field) from the same parameters, the
     // term on and off: the same batch and colour, eikonal and mask terms; a photo term on top;
     // the SDF moved differently and the radiance net alike.
-    use pii_bake::scene::{Downscale, ReadOptions};
-    use pii_bake::train::stage1::TrainData;
     let b = Backend::cpu();
-    let ex = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/example");
-    let scene = pii_bake::scene::load(&ex, &ReadOptions { downscale: Downscale::By(4), keep_all_views: false }).unwrap();
+    let scene = example_at_quarter();
     let (views, _) = pii_bake::train::cli::train_views(&scene);
     let data = TrainData::new(&views, 1.0).unwrap();
     let config = |w: f32| {
-        let mut cfg = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Sphere, &views, 0, 4);
-        cfg.field.encoding = FieldEncoding::HashGrid { levels: 4, features_per_level: 2, log2_table_size: 14, base_resolution: 8, growth: 2.0 };
-        cfg.field.widths = vec![16];
+        let mut cfg = tiny_fast_config(&views);
         cfg.rays = 256;
-        cfg.eikonal_points = 64;
-        cfg.radiance_warmup = 0.0;
         cfg.photo_consistency = w;
         cfg
     };

@@ -18,6 +18,7 @@
 
 use glam::{DMat4, DVec3};
 
+use super::photo::{dot, nearest_by_direction, sub};
 use super::stage1::TrainData;
 
 /// How many of the nearest photos (by direction from the frame's centre) a reference photo is
@@ -68,29 +69,10 @@ fn prefilter(rgb: &[f32], w: usize, h: usize) -> Vec<f32> {
     pass(&pass(rgb, true), false)
 }
 
-fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-fn normalize(a: [f32; 3]) -> [f32; 3] {
-    let l = dot(a, a).sqrt().max(1e-20);
-    [a[0] / l, a[1] / l, a[2] / l]
-}
-
 impl MultiView {
     pub fn new(data: &TrainData) -> Self {
         let centres: Vec<[f32; 3]> = data.views.iter().map(|v| v.camera.center().as_vec3().to_array()).collect();
-        let neighbours = (0..centres.len())
-            .map(|r| {
-                let d = normalize(centres[r]);
-                let mut o: Vec<usize> = (0..centres.len()).filter(|&v| v != r).collect();
-                o.sort_by(|&a, &b| dot(normalize(centres[b]), d).total_cmp(&dot(normalize(centres[a]), d)));
-                o.truncate(NEIGHBOURS);
-                o
-            })
-            .collect();
+        let neighbours = nearest_by_direction(&centres, NEIGHBOURS);
         let images = data.views.iter().map(|v| prefilter(&v.rgb, v.camera.width, v.camera.height)).collect();
         Self { camera_from_world: data.views.iter().map(|v| v.camera.world_from_camera.inverse()).collect(), centres, neighbours, images }
     }

@@ -40,15 +40,29 @@ pub(crate) fn patch_of(px: [f32; 2], lookup: impl Fn([f32; 2]) -> Option<[f32; 3
     Some(out)
 }
 
-fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+pub(crate) fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
-fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
+pub(crate) fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
-fn normalize(a: [f32; 3]) -> [f32; 3] {
+pub(crate) fn normalize(a: [f32; 3]) -> [f32; 3] {
     let l = dot(a, a).sqrt().max(1e-20);
     [a[0] / l, a[1] / l, a[2] / l]
+}
+
+/// For each camera centre, the indices of the `k` others nearest to it by direction from the
+/// frame's centre (the closest first).
+pub(crate) fn nearest_by_direction(centres: &[[f32; 3]], k: usize) -> Vec<Vec<usize>> {
+    (0..centres.len())
+        .map(|r| {
+            let d = normalize(centres[r]);
+            let mut o: Vec<usize> = (0..centres.len()).filter(|&v| v != r).collect();
+            o.sort_by(|&a, &b| dot(normalize(centres[b]), d).total_cmp(&dot(normalize(centres[a]), d)));
+            o.truncate(k);
+            o
+        })
+        .collect()
 }
 
 /// Is the segment from surface point `p` (normal `n`) to `target` free of the SDF's surface?
@@ -215,15 +229,7 @@ pub fn carve_concavities(views: &[&dyn PhotoView], inside: &mut [bool], res: usi
     let mut typical: Option<f32> = None;
     // Each reference view is matched against its NEIGHBOURS closest views (by direction from the
     // centre of the frame), which bounds the cost on captures with many views.
-    let neighbours: Vec<Vec<usize>> = (0..views.len())
-        .map(|r| {
-            let d = normalize(views[r].centre());
-            let mut o: Vec<usize> = (0..views.len()).filter(|&v| v != r).collect();
-            o.sort_by(|&a, &b| dot(normalize(views[b].centre()), d).total_cmp(&dot(normalize(views[a].centre()), d)));
-            o.truncate(NEIGHBOURS);
-            o
-        })
-        .collect();
+    let neighbours = nearest_by_direction(&views.iter().map(|v| v.centre()).collect::<Vec<_>>(), NEIGHBOURS);
     for _ in 0..cfg.rounds {
         report.rounds += 1;
         let sdf = super::hull::signed_distance(inside, res, bound);
