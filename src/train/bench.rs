@@ -138,10 +138,6 @@ fn measure(backend: &Backend, f: &(dyn Fn(&[f32]) -> Result<Vec<f32>, crate::bac
     (m.chamfer / gt_size, m.normal_consistency)
 }
 
-/// The shipped mesh (`export`'s pipeline: grid, specks dropped, closed, simplified within the
-/// error bound) of a trained model, measured against `gt` (normalised frame): Chamfer relative to
-/// the GT's size, normal consistency of the triangles (as a renderer without vertex normals sees
-/// them) and with the shipped vertex normals (as a .glb shades), triangle count and the bound used.
 /// The ground-truth reference of a scene: the fast preset's SDF fitted for `steps` to the signed
 /// distance of `gt` (normalised frame, as `train --init-mesh`), then measured as a field (marched
 /// at `res`) and as the mesh `export` ships (at `asset_res`, `--asset-resolution`'s first, where
@@ -165,6 +161,10 @@ fn reference(backend: &Backend, cfg: &Stage1Config, gt: &crate::eval::mesh::Mesh
     }))
 }
 
+/// The shipped mesh (`export`'s pipeline: grid, specks dropped, closed, simplified within the
+/// error bound) of a trained model, measured against `gt` (normalised frame): Chamfer relative to
+/// the GT's size, normal consistency of the triangles (as a renderer without vertex normals sees
+/// them) and with the shipped vertex normals (as a .glb shades), triangle count and the bound used.
 fn measure_asset(backend: &Backend, model: &super::stage1::Model, mesh_cfg: &crate::mesh::MeshConfig, gt: &crate::eval::mesh::Mesh, gt_size: f64) -> anyhow::Result<serde_json::Value> {
     let t = Instant::now();
     let sdf = super::cli::TrainedSdf::new(backend, model, glam::DMat3::IDENTITY)?;
