@@ -25,6 +25,9 @@ use super::stage1::TrainData;
 /// compared with.
 pub const NEIGHBOURS: usize = 8;
 
+/// Stage 1's cost is the mean of this many best-matching neighbour patches.
+pub const BEST: usize = 2;
+
 /// The term's settings ([`super::stage1::Stage1Config::photo_consistency`]).
 #[derive(Clone, Copy, Debug)]
 pub struct PhotoConsistency {

@@ -1167,6 +1167,9 @@ fn loss_and_grad_tensors(
         let n = ns + nm + ne;
         let fd = model.field.config.feature_dim;
         let mut g = FieldOutputGrads { sdf: vec![0.0; n], gradient: vec![0.0; 3 * n], feature: vec![0.0; n * fd] };
+        // ∇f·v at each surface point (the implicit surface point's denominator, for the colour
+        // and the photo-consistency term).
+        let gdotv: Vec<f32> = (0..ns).map(|k| (0..3).map(|a| o.gradient[3 * k + a] * dirs[k][a]).sum()).collect();
         // Colour.
         if ns > 0 {
             let r = (|| {
@@ -1176,11 +1179,7 @@ fn loss_and_grad_tensors(
                 let mut dc = vec![0f32; 3 * ns];
                 for k in 0..ns {
                     let gt = batch.rgb[surf[k]];
-                    let gdotv = {
-                        let gr = &o.gradient[3 * k..3 * k + 3];
-                        let d = dirs[k];
-                        gr[0] * d[0] + gr[1] * d[1] + gr[2] * d[2]
-                    };
+                    let gdotv = gdotv[k];
                     let mut s_term = 0.0f32;
                     for ch in 0..3 {
                         let e = c[3 * k + ch] - gt[ch];
@@ -1224,7 +1223,6 @@ fn loss_and_grad_tensors(
         }
         // Multi-view photo consistency at the surface points.
         if let Some(pt) = photo.filter(|_| ns > 0 && batch.view.len() == nrays) {
-            let gdotv: Vec<f32> = (0..ns).map(|k| (0..3).map(|a| o.gradient[3 * k + a] * dirs[k][a]).sum()).collect();
             let views: Vec<u32> = surf.iter().map(|&i| batch.view[i]).collect();
             let pixels: Vec<[f32; 2]> = surf.iter().map(|&i| batch.pixel[i]).collect();
             let (l, d) = pt.multiview.term(pt.data, &pt.settings, &views, &pixels, &x0, &dirs, &gdotv, ls.grazing_cos);
@@ -1473,9 +1471,6 @@ pub fn normal_smoothness(gradients: &[f32], pairs: &[(usize, usize)], weight: f3
     loss
 }
 
-/// The photo-consistency cost averages this many best-matching neighbour patches.
-pub const PHOTO_BEST: usize = 2;
-
 /// A trainer: model, optimiser state, step counter.
 #[derive(Debug)]
 pub struct Trainer {
@@ -1490,7 +1485,7 @@ pub struct Trainer {
     pub skipped: u64,
     host: Backend,
     device: Option<DeviceParams>,
-    /// The photo-consistency term's cameras (built at the first step that needs them).
+    /// The photo-consistency term's cameras and filtered photos, while its weight is above zero.
     multiview: Option<super::multiview::MultiView>,
 }
 
@@ -1688,7 +1683,12 @@ impl Trainer {
             _ => self.cfg.rays,
         };
         let batch = data.sample(&mut rng, nrays, self.cfg.foreground_fraction);
-        if self.cfg.photo_consistency > 0.0 && self.multiview.is_none() {
+        // The term's cameras and filtered photos while its weight is above zero; dropped once it
+        // has faded out (the rest of the run computes nothing for it).
+        let photo_weight = self.cfg.photo_consistency_at(self.step);
+        if photo_weight <= 0.0 {
+            self.multiview = None;
+        } else if self.multiview.is_none() {
             self.multiview = Some(super::multiview::MultiView::new(data));
         }
         let b = self.cfg.trace.bound;
@@ -1724,7 +1724,7 @@ impl Trainer {
                 let photo = self.multiview.as_ref().map(|mv| PhotoTerm {
                     data,
                     multiview: mv,
-                    settings: super::multiview::PhotoConsistency { weight: self.cfg.photo_consistency_at(self.step), best: PHOTO_BEST, depth_step: self.cfg.sizes.pixel_footprint },
+                    settings: super::multiview::PhotoConsistency { weight: photo_weight, best: super::multiview::BEST, depth_step: self.cfg.sizes.pixel_footprint },
                 });
                 loss_and_grad_tensors(backend, &self.model, &self.cfg.trace, &batch, &eik, &ls, jitter, photo)?
             }
