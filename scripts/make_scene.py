@@ -7,7 +7,7 @@ textures; metallic 0, except the `metal` scene's, from a metallic texture), lit 
 `shared/data/envmaps`.
 
 Usage:
-    python scripts/make_scene.py --scene {spot,bowl,glossy,textureless,metal} --out DIR [--width 200] [--height 200]
+    python scripts/make_scene.py --scene {spot,bowl,glossy,textureless,metal,bunny} --out DIR [--width 200] [--height 200]
         [--train 24] [--test 4] [--samples 64] [--gt-samples 16] [--env-width 512] [--threads 2]
         [--data ../shared/data]
 
@@ -63,7 +63,7 @@ def parse_args(argv):
     if not os.path.isdir(default_data):
         default_data = "/work/shared/data"
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--scene", choices=["spot", "bowl", "glossy", "textureless", "metal"], required=True)
+    p.add_argument("--scene", choices=["spot", "bowl", "glossy", "textureless", "metal", "bunny"], required=True)
     p.add_argument("--out", required=True)
     p.add_argument("--width", type=int, default=200)
     p.add_argument("--height", type=int, default=200)
@@ -85,6 +85,7 @@ ENVS = {
     "glossy": ("blender_studiolights/forest.exr", ["blender_studiolights/interior.exr", "invrender/envmap12.exr"]),
     "textureless": ("blender_studiolights/courtyard.exr", ["blender_studiolights/studio.exr", "invrender/envmap3.exr"]),
     "metal": ("blender_studiolights/courtyard.exr", ["blender_studiolights/sunset.exr", "invrender/envmap6.exr"]),
+    "bunny": ("blender_studiolights/city.exr", ["blender_studiolights/forest.exr", "invrender/envmap3.exr"]),
 }
 
 
@@ -259,6 +260,37 @@ def build_metal(args, tex_dir):
     ob.data.materials.clear()
     ob.data.materials.append(principled_material("spot_metal", a, r, m))
     return objs
+
+
+def build_bunny(args, tex_dir):
+    # The Stanford bunny (a scan: thin ears, a bumpy fur-less surface, open holes in its base), scaled from
+    # its ~0.16 m to about 1.6 m across like the other scenes, UVs by Blender's smart projection, a
+    # checker albedo (its cells cut at chart seams: texture everywhere) and a smooth roughness pattern. An
+    # object none of the other scenes resemble, with parts a few pixels thin at 200 px.
+    path = os.path.join(args.data, "meshes", "stanford-bunny.obj")
+    bpy.ops.wm.obj_import(filepath=path, forward_axis="NEGATIVE_Z", up_axis="Y")
+    ob = bpy.context.selected_objects[0]
+    ob.name = "bunny"
+    bpy.context.view_layer.objects.active = ob
+    ob.scale = (10.0, 10.0, 10.0)
+    bpy.ops.object.transform_apply(location=False, rotation=True, scale=True)
+    lo = np.array([min(v.co[k] for v in ob.data.vertices) for k in range(3)])
+    hi = np.array([max(v.co[k] for v in ob.data.vertices) for k in range(3)])
+    c = 0.5 * (lo + hi)
+    for v in ob.data.vertices:
+        v.co = (v.co[0] - c[0], v.co[1] - c[1], v.co[2] - c[2])
+    bpy.ops.object.mode_set(mode="EDIT")
+    bpy.ops.mesh.select_all(action="SELECT")
+    bpy.ops.uv.smart_project(angle_limit=math.radians(66.0), island_margin=0.01)
+    bpy.ops.object.mode_set(mode="OBJECT")
+    bpy.ops.object.shade_smooth()
+    a = save_texture("bunny_albedo", checker_albedo(256, (0.75, 0.7, 0.6), (0.3, 0.45, 0.25), 10),
+                     os.path.join(tex_dir, "albedo_bunny.png"), non_color=False)
+    r = save_texture("bunny_rough", roughness_pattern(256, 0.3, 0.7, 2), os.path.join(tex_dir, "roughness_bunny.png"),
+                     non_color=True)
+    ob.data.materials.clear()
+    ob.data.materials.append(principled_material("bunny", a, r))
+    return [ob]
 
 
 def bowl_and_ball():
@@ -506,7 +538,7 @@ def main(argv):
     t0 = time.time()
     tex_dir = os.path.join(out, "gt")
     objs = {"spot": build_spot, "bowl": build_bowl, "glossy": build_glossy, "textureless": build_textureless,
-            "metal": build_metal}[args.scene](args, tex_dir)
+            "metal": build_metal, "bunny": build_bunny}[args.scene](args, tex_dir)
     has_metal = any("pii_metal" in s.material for ob in objs for s in ob.material_slots)
     verts, tris = world_triangles(objs)
     write_obj(os.path.join(out, "gt", "mesh.obj"), verts, tris)

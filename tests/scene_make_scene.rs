@@ -75,3 +75,22 @@ fn the_metal_scene_has_a_metallic_pass_with_metal_and_dielectric_in_view() {
     assert!(meta["test_gt"]["metallic"].is_string(), "{}", meta["test_gt"]);
     assert!(d.path().join("gt/metallic_spot.png").is_file());
 }
+
+#[test]
+fn the_bunny_scene_is_the_scan_at_the_scenes_scale_with_texture_everywhere() {
+    let d = tempfile::tempdir().unwrap();
+    run_scene(d.path(), "bunny");
+    // The scan (35 947 vertices, ears included), scaled from ~0.16 m to the other scenes' ~1.6 m.
+    let gt = pii_bake::eval::mesh::Mesh::read(&d.path().join("gt/mesh.obj")).unwrap();
+    assert!(gt.positions.len() > 30_000, "{} vertices", gt.positions.len());
+    let extent = (0..3).map(|k| gt.positions.iter().map(|p| p[k]).fold(f64::NEG_INFINITY, f64::max) - gt.positions.iter().map(|p| p[k]).fold(f64::INFINITY, f64::min)).fold(0.0, f64::max);
+    assert!((1.2..2.2).contains(&extent), "largest extent {extent} m");
+    // Both checker colours show in the albedo pass (smart-projected UVs carry the texture).
+    let img = image::open(d.path().join("test/r_000_albedo.png")).unwrap().to_rgba8();
+    let covered: Vec<_> = img.pixels().filter(|p| p[3] == 255).collect();
+    let green = covered.iter().filter(|p| p[1] as i32 > p[0] as i32 + 20).count();
+    let beige = covered.iter().filter(|p| p[0] as i32 > p[2] as i32 + 15 && p[0] >= p[1]).count();
+    assert!(green * 10 > covered.len() && beige * 10 > covered.len(), "{green} green, {beige} beige of {} pixels", covered.len());
+    let scene = pii_bake::scene::load(d.path(), &Default::default()).unwrap();
+    assert_eq!(scene.views.len(), 3);
+}
