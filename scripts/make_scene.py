@@ -38,7 +38,7 @@ Output layout (all paths relative to DIR; the world frame is Blender's: right-ha
 
 Measured (200x200, 24 train + 4 test views, 64 spp, GT passes 16 spp, 2 relit envs, env 256x128, 2 threads on a
 shared 2-core CPU): spot 235 s, bowl 498 s, glossy 254 s; textureless (the bowl's shapes, one uniform matte
-colour each; 512x256 envs, the CPU not shared) 159 s. The bundled example tests/data/example is
+colour each; 512x256 envs, the CPU not shared) 159 s; bunny (512x256 envs, the CPU shared) 115 s. The bundled example tests/data/example is
 `--scene spot --width 200 --height 200 --train 24 --test 4 --samples 64 --env-width 256`.
 """
 
@@ -176,6 +176,15 @@ def principled_material(name, albedo_img, rough_img, metal_img=None):
     return mat
 
 
+def textured(ob, name, albedo_px, rough_px, tex_dir):
+    """Give `ob` one Principled material `name` from an albedo and a roughness texture, written as
+    gt/albedo_<name>.png and gt/roughness_<name>.png."""
+    a = save_texture(name + "_albedo", albedo_px, os.path.join(tex_dir, "albedo_%s.png" % name), non_color=False)
+    r = save_texture(name + "_rough", rough_px, os.path.join(tex_dir, "roughness_%s.png" % name), non_color=True)
+    ob.data.materials.clear()
+    ob.data.materials.append(principled_material(name, a, r))
+
+
 def emission_material(name, kind, albedo_img=None, rough_img=None, metal_img=None):
     """Emission-only material that outputs a GT quantity: albedo, roughness, metallic (0 without a metallic
     texture) or normal*0.5+0.5."""
@@ -239,11 +248,7 @@ def build_spot(args, tex_dir):
     alb_small = alb.copy()
     alb_small.scale(256, 256)
     alb_px = np.array(alb_small.pixels[:], dtype=np.float32).reshape(256, 256, 4)
-    a = save_texture("spot_albedo", alb_px, os.path.join(tex_dir, "albedo_spot.png"), non_color=False)
-    r = save_texture("spot_rough", roughness_pattern(256, 0.3, 0.8, 3), os.path.join(tex_dir, "roughness_spot.png"),
-                     non_color=True)
-    ob.data.materials.clear()
-    ob.data.materials.append(principled_material("spot", a, r))
+    textured(ob, "spot", alb_px, roughness_pattern(256, 0.3, 0.8, 3), tex_dir)
     return [ob]
 
 
@@ -284,12 +289,8 @@ def build_bunny(args, tex_dir):
     bpy.ops.uv.smart_project(angle_limit=math.radians(66.0), island_margin=0.01)
     bpy.ops.object.mode_set(mode="OBJECT")
     bpy.ops.object.shade_smooth()
-    a = save_texture("bunny_albedo", checker_albedo(256, (0.75, 0.7, 0.6), (0.3, 0.45, 0.25), 10),
-                     os.path.join(tex_dir, "albedo_bunny.png"), non_color=False)
-    r = save_texture("bunny_rough", roughness_pattern(256, 0.3, 0.7, 2), os.path.join(tex_dir, "roughness_bunny.png"),
-                     non_color=True)
-    ob.data.materials.clear()
-    ob.data.materials.append(principled_material("bunny", a, r))
+    textured(ob, "bunny", checker_albedo(256, (0.75, 0.7, 0.6), (0.3, 0.45, 0.25), 10), roughness_pattern(256, 0.3, 0.7, 2),
+             tex_dir)
     return [ob]
 
 
@@ -316,18 +317,10 @@ def bowl_and_ball():
 
 def build_bowl(args, tex_dir):
     bowl, ball = bowl_and_ball()
-    a1 = save_texture("bowl_albedo", checker_albedo(256, (0.8, 0.75, 0.7), (0.55, 0.2, 0.15), 8),
-                      os.path.join(tex_dir, "albedo_bowl.png"), non_color=False)
-    r1 = save_texture("bowl_rough", roughness_pattern(256, 0.35, 0.75, 2), os.path.join(tex_dir, "roughness_bowl.png"),
-                      non_color=True)
-    a2 = save_texture("ball_albedo", checker_albedo(256, (0.2, 0.45, 0.75), (0.85, 0.85, 0.3), 6),
-                      os.path.join(tex_dir, "albedo_ball.png"), non_color=False)
-    r2 = save_texture("ball_rough", roughness_pattern(256, 0.2, 0.5, 4), os.path.join(tex_dir, "roughness_ball.png"),
-                      non_color=True)
-    bowl.data.materials.clear()
-    bowl.data.materials.append(principled_material("bowl", a1, r1))
-    ball.data.materials.clear()
-    ball.data.materials.append(principled_material("ball", a2, r2))
+    textured(bowl, "bowl", checker_albedo(256, (0.8, 0.75, 0.7), (0.55, 0.2, 0.15), 8), roughness_pattern(256, 0.35, 0.75, 2),
+             tex_dir)
+    textured(ball, "ball", checker_albedo(256, (0.2, 0.45, 0.75), (0.85, 0.85, 0.3), 6), roughness_pattern(256, 0.2, 0.5, 4),
+             tex_dir)
     return [bowl, ball]
 
 
@@ -336,14 +329,8 @@ def build_textureless(args, tex_dir):
     # photometric loss to lock onto, only shading, silhouettes and interreflection (a known failure
     # case for multi-view stereo and inverse rendering alike).
     bowl, ball = bowl_and_ball()
-    mats = []
     for ob, colour, rough in ((bowl, (0.7, 0.68, 0.62), 0.5), (ball, (0.35, 0.5, 0.7), 0.4)):
-        a = save_texture(ob.name + "_albedo", checker_albedo(16, colour, colour, 1),
-                         os.path.join(tex_dir, "albedo_%s.png" % ob.name), non_color=False)
-        r = save_texture(ob.name + "_rough", roughness_pattern(16, rough, rough, 1),
-                         os.path.join(tex_dir, "roughness_%s.png" % ob.name), non_color=True)
-        ob.data.materials.clear()
-        ob.data.materials.append(principled_material(ob.name, a, r))
+        textured(ob, ob.name, checker_albedo(16, colour, colour, 1), roughness_pattern(16, rough, rough, 1), tex_dir)
     return [bowl, ball]
 
 
@@ -356,18 +343,10 @@ def build_glossy(args, tex_dir):
     t.name = "torus"
     t.rotation_euler = (0.35, 0.0, 0.0)
     bpy.ops.object.shade_smooth()
-    a1 = save_texture("sphere_albedo", checker_albedo(256, (0.7, 0.1, 0.1), (0.9, 0.8, 0.6), 6),
-                      os.path.join(tex_dir, "albedo_sphere.png"), non_color=False)
-    r1 = save_texture("sphere_rough", roughness_pattern(256, 0.05, 0.15, 2), os.path.join(tex_dir, "roughness_sphere.png"),
-                      non_color=True)
-    a2 = save_texture("torus_albedo", checker_albedo(256, (0.15, 0.15, 0.2), (0.6, 0.65, 0.7), 12),
-                      os.path.join(tex_dir, "albedo_torus.png"), non_color=False)
-    r2 = save_texture("torus_rough", roughness_pattern(256, 0.05, 0.15, 3), os.path.join(tex_dir, "roughness_torus.png"),
-                      non_color=True)
-    s.data.materials.clear()
-    s.data.materials.append(principled_material("sphere", a1, r1))
-    t.data.materials.clear()
-    t.data.materials.append(principled_material("torus", a2, r2))
+    textured(s, "sphere", checker_albedo(256, (0.7, 0.1, 0.1), (0.9, 0.8, 0.6), 6), roughness_pattern(256, 0.05, 0.15, 2),
+             tex_dir)
+    textured(t, "torus", checker_albedo(256, (0.15, 0.15, 0.2), (0.6, 0.65, 0.7), 12), roughness_pattern(256, 0.05, 0.15, 3),
+             tex_dir)
     return [s, t]
 
 
