@@ -268,7 +268,7 @@ def build_metal(args, tex_dir):
 
 
 def build_bunny(args, tex_dir):
-    # The Stanford bunny (a scan: thin ears, a bumpy fur-less surface, open holes in its base), scaled from
+    # The Stanford bunny (a scan: thin ears, a bumpy surface, open holes in its base), scaled from
     # its ~0.16 m to about 1.6 m across like the other scenes, UVs by Blender's smart projection, a
     # checker albedo (its cells cut at chart seams: texture everywhere) and a smooth roughness pattern. An
     # object none of the other scenes resemble, with parts a few pixels thin at 200 px.
