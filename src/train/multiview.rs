@@ -18,7 +18,7 @@
 
 use glam::{DMat4, DVec3};
 
-use super::photo::{dot, nearest_by_direction, sub};
+use super::photo::{dot, nearest_by_direction, sub, Pixels};
 use super::stage1::TrainData;
 
 /// How many of the nearest photos (by direction from the frame's centre) a reference photo is
@@ -90,25 +90,8 @@ impl MultiView {
     /// off the mask.
     fn patch(&self, data: &TrainData, v: usize, px: [f32; 2]) -> Option<[[f32; 3]; 9]> {
         let view = &data.views[v];
-        let rgb = &self.images[v];
         let (w, h) = (view.camera.width, view.camera.height);
-        super::photo::patch_of(px, |q| {
-            if !(q[0] >= 0.0 && q[1] >= 0.0 && (q[0] as usize) < w && (q[1] as usize) < h) {
-                return None;
-            }
-            if view.mask[q[1] as usize * w + q[0] as usize] < 0.5 {
-                return None;
-            }
-            let fx = (q[0] - 0.5).clamp(0.0, (w - 1) as f32);
-            let fy = (q[1] - 0.5).clamp(0.0, (h - 1) as f32);
-            let (x0, y0) = (fx as usize, fy as usize);
-            let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
-            let (tx, ty) = (fx - x0 as f32, fy - y0 as f32);
-            let at = |x: usize, y: usize, c: usize| rgb[3 * (y * w + x) + c];
-            Some([0, 1, 2].map(|c| {
-                (at(x0, y0, c) * (1.0 - tx) + at(x1, y0, c) * tx) * (1.0 - ty) + (at(x0, y1, c) * (1.0 - tx) + at(x1, y1, c) * tx) * ty
-            }))
-        })
+        Pixels::new(w, h, Some(&view.mask), &self.images[v], w, h, 3).patch(px)
     }
 
     /// The patch cost (mean |a − b| over the patch and channels) of view `v` at point `p`

@@ -40,6 +40,70 @@ pub(crate) fn patch_of(px: [f32; 2], lookup: impl Fn([f32; 2]) -> Option<[f32; 3
     Some(out)
 }
 
+/// What a colour lookup reads of a view's pixels (photo consistency samples millions of 3×3
+/// patches): the mask's size and values, and an interleaved image (`stride` values per pixel).
+pub(crate) struct Pixels<'a> {
+    width: usize,
+    height: usize,
+    mask: Option<&'a [f32]>,
+    data: &'a [f32],
+    image_width: usize,
+    image_height: usize,
+    stride: usize,
+    /// The image channel of R, G and B (all 0 for a one-channel image).
+    channels: [usize; 3],
+}
+
+impl<'a> Pixels<'a> {
+    /// `width`×`height`: the view's (and its mask's) size; the image, `image_width`×
+    /// `image_height` pixels of `stride` values.
+    #[inline(always)]
+    pub(crate) fn new(width: usize, height: usize, mask: Option<&'a [f32]>, data: &'a [f32], image_width: usize, image_height: usize, stride: usize) -> Self {
+        Self { width, height, mask, data, image_width, image_height, stride, channels: [0, 1, 2].map(|k: usize| k.min(stride - 1)) }
+    }
+
+    /// The mask at continuous pixel coordinates (1 without a mask, as `View::mask_at`); None off
+    /// the image.
+    #[inline(always)]
+    pub(crate) fn mask_at(&self, px: [f32; 2]) -> Option<f32> {
+        if !(px[0] >= 0.0 && px[1] >= 0.0 && (px[0] as usize) < self.width && (px[1] as usize) < self.height) {
+            return None;
+        }
+        Some(self.mask.map_or(1.0, |m| m[px[1] as usize * self.width + px[0] as usize]))
+    }
+
+    /// The image at continuous pixel coordinates (pixel centres at +0.5), bilinear; None off
+    /// the image or where the mask is below 0.5.
+    #[inline(always)]
+    pub(crate) fn colour_at(&self, px: [f32; 2]) -> Option<[f32; 3]> {
+        if self.mask_at(px)? < 0.5 {
+            return None;
+        }
+        let (w, h, c, data) = (self.image_width, self.image_height, self.stride, self.data);
+        let fx = (px[0] - 0.5).clamp(0.0, (w - 1) as f32);
+        let fy = (px[1] - 0.5).clamp(0.0, (h - 1) as f32);
+        // Truncation is the floor of these clamped (non-negative) values, without a libm call.
+        let (x0, y0) = (fx as usize, fy as usize);
+        let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+        let (tx, ty) = (fx - x0 as f32, fy - y0 as f32);
+        let (r0, r1) = (y0 * w, y1 * w);
+        let mut out = [0.0; 3];
+        for (o, &k) in out.iter_mut().zip(&self.channels) {
+            let at = |row: usize, x: usize| data[(row + x) * c + k];
+            let top = at(r0, x0) * (1.0 - tx) + at(r0, x1) * tx;
+            let bottom = at(r1, x0) * (1.0 - tx) + at(r1, x1) * tx;
+            *o = top * (1.0 - ty) + bottom * ty;
+        }
+        Some(out)
+    }
+
+    /// The 3×3 patch around `px` ([`patch_of`]) with the image, mask and sizes gathered once.
+    #[inline(always)]
+    pub(crate) fn patch(&self, px: [f32; 2]) -> Option<[[f32; 3]; 9]> {
+        patch_of(px, |q| self.colour_at(q))
+    }
+}
+
 pub(crate) fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }

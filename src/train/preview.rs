@@ -25,7 +25,7 @@ use anyhow::Context as _;
 use glam::{DMat3, DMat4, DQuat, DVec3};
 
 use super::hull::{carve, signed_distance, Grid3, MaskView};
-use super::photo::{project_colour, PhotoView};
+use super::photo::{project_colour, PhotoView, Pixels};
 use crate::backend::{Backend, BackendError};
 use crate::context::Context;
 use crate::export::ExportConfig;
@@ -98,7 +98,7 @@ impl MaskView for ViewAdapter<'_> {
         Some([q.x as f32, q.y as f32])
     }
     fn mask_at(&self, px: [f32; 2]) -> Option<f32> {
-        Pixels::of(self.view).mask_at(px)
+        pixels(self.view).mask_at(px)
     }
 }
 
@@ -110,67 +110,19 @@ impl PhotoView for ViewAdapter<'_> {
         self.centre
     }
     fn colour_at(&self, px: [f32; 2]) -> Option<[f32; 3]> {
-        Pixels::of(self.view).colour_at(px)
+        pixels(self.view).colour_at(px)
     }
     /// The nine lookups of [`PhotoView::patch`] with the image, mask and sizes gathered once.
     fn patch(&self, px: [f32; 2]) -> Option<[[f32; 3]; 9]> {
-        let pixels = Pixels::of(self.view);
-        super::photo::patch_of(px, |q| pixels.colour_at(q))
+        pixels(self.view).patch(px)
     }
 }
 
-/// What a colour lookup reads of a view (photo consistency samples millions of 3×3 patches).
-struct Pixels<'a> {
-    width: usize,
-    height: usize,
-    mask: Option<&'a [f32]>,
-    image: &'a crate::image_io::ImageF32,
-    /// The image channel of R, G and B (all 0 for a one-channel image).
-    channels: [usize; 3],
-}
-
-impl<'a> Pixels<'a> {
-    #[inline(always)]
-    fn of(view: &'a View) -> Self {
-        let image = &view.image;
-        Self { width: view.camera.width, height: view.camera.height, mask: view.mask.as_deref(), image, channels: [0, 1, 2].map(|k: usize| k.min(image.channels - 1)) }
-    }
-
-    /// The mask at continuous pixel coordinates (1 without a mask, as `View::mask_at`); None off
-    /// the image.
-    #[inline(always)]
-    fn mask_at(&self, px: [f32; 2]) -> Option<f32> {
-        if !(px[0] >= 0.0 && px[1] >= 0.0 && (px[0] as usize) < self.width && (px[1] as usize) < self.height) {
-            return None;
-        }
-        Some(self.mask.map_or(1.0, |m| m[px[1] as usize * self.width + px[0] as usize]))
-    }
-
-    /// Linear RGB at continuous pixel coordinates (pixel centres at +0.5), bilinear; None off
-    /// the image or where the mask is below 0.5.
-    #[inline(always)]
-    fn colour_at(&self, px: [f32; 2]) -> Option<[f32; 3]> {
-        if self.mask_at(px)? < 0.5 {
-            return None;
-        }
-        let img = self.image;
-        let (w, h, c, data) = (img.width, img.height, img.channels, &img.data[..]);
-        let fx = (px[0] - 0.5).clamp(0.0, (w - 1) as f32);
-        let fy = (px[1] - 0.5).clamp(0.0, (h - 1) as f32);
-        // Truncation is the floor of these clamped (non-negative) values, without a libm call.
-        let (x0, y0) = (fx as usize, fy as usize);
-        let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
-        let (tx, ty) = (fx - x0 as f32, fy - y0 as f32);
-        let (r0, r1) = (y0 * w, y1 * w);
-        let mut out = [0.0; 3];
-        for (o, &k) in out.iter_mut().zip(&self.channels) {
-            let at = |row: usize, x: usize| data[(row + x) * c + k];
-            let top = at(r0, x0) * (1.0 - tx) + at(r0, x1) * tx;
-            let bottom = at(r1, x0) * (1.0 - tx) + at(r1, x1) * tx;
-            *o = top * (1.0 - ty) + bottom * ty;
-        }
-        Some(out)
-    }
+/// A view's image and mask as [`Pixels`] reads them.
+#[inline(always)]
+fn pixels(view: &View) -> Pixels<'_> {
+    let image = &view.image;
+    Pixels::new(view.camera.width, view.camera.height, view.mask.as_deref(), &image.data, image.width, image.height, image.channels)
 }
 
 /// Normalised frame → asset frame: the rotation taking the detected up axis to +Y (exact axis
