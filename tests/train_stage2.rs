@@ -1034,3 +1034,96 @@ fn a_calibrated_run_warms_up_with_physgs_brdf() {
     cold.brdf_warmup = 0.0;
     assert_ne!(losses(&cold)[0], physg[0]);
 }
+
+/// The light–albedo balance `g` (light × e^g, albedo and occluder reflectance × e^−g): its
+/// gradient matches central differences along that direction, with the albedo scaled (some of
+/// it capped at 1) and with every indirect mode it applies to; the other parameters' gradients
+/// still match with the scale in place.
+#[test]
+fn light_albedo_balance_gradient_matches_central_differences() {
+    let b = Backend::cpu();
+    let along = |m: &mut Stage2Model, h: f32| {
+        let log = m.cfg.log_amplitude;
+        m.light.chunks_exact_mut(7).for_each(|p| p[4..7].iter_mut().for_each(|v| if log { *v += h } else { *v *= h.exp() }));
+        m.albedo_scale *= (-h as f64).exp();
+    };
+    for (indirect, metallic, log, scale) in [
+        (IndirectMode::Ours, false, false, 0.8),
+        (IndirectMode::Ours, true, false, 2.5),
+        (IndirectMode::Ours, false, true, 0.6),
+        (IndirectMode::Uniform, false, false, 0.9),
+        (IndirectMode::None, true, false, 1.2),
+    ] {
+        let mut cfg = tiny(indirect, DecoderMode::Separate);
+        cfg.metallic = metallic;
+        cfg.log_amplitude = log;
+        cfg.balance_lr_factor = 1.0;
+        let mut model = Stage2Model::new(&cfg).unwrap();
+        model.albedo_scale = scale;
+        let albedo = model.material(&b, &batch().x).unwrap().albedo;
+        if scale > 1.5 {
+            assert!(albedo.iter().flatten().any(|&a| a == 1.0), "some albedo is capped at 1: {albedo:?}");
+        }
+        let g = grads(&b, &model);
+        let h = 1e-3f32;
+        let (mut mp, mut mm) = (model.clone(), model.clone());
+        along(&mut mp, h);
+        along(&mut mm, -h);
+        let fd = (grads(&b, &mp).stats.loss - grads(&b, &mm).stats.loss) / (2.0 * h as f64);
+        let what = format!("{indirect:?} metallic {metallic} log {log} scale {scale}");
+        assert!(fd.abs() > 1e-5, "{what}: the loss moves along the balance ({fd:e})");
+        assert!((g.d_balance - fd).abs() <= 2e-5 + 0.03 * fd.abs(), "{what}: analytic {:e} vs central difference {fd:e}", g.d_balance);
+        check_group("light", &g.d_light, model.light.len(), &model, &|m, i, h| m.light[i] += h);
+        for d in 0..model.dec_params.len() {
+            check_group(&format!("decoder{d}"), &g.d_dec[d], model.dec_params[d].len(), &model, &|m, i, h| m.dec_params[d][i] += h);
+        }
+        if indirect == IndirectMode::Ours {
+            check_group("indirect", &g.d_ind, model.ind_params.len(), &model, &|m, i, h| m.ind_params[i] += h);
+        }
+    }
+    // Off (and with a known light, or the `mii` baseline): no gradient, nothing moves.
+    for (factor, fixed, indirect) in [(0.0, false, IndirectMode::Ours), (1.0, true, IndirectMode::Ours), (1.0, false, IndirectMode::Mii)] {
+        let mut cfg = tiny(indirect, DecoderMode::Separate);
+        cfg.balance_lr_factor = factor;
+        cfg.light_fixed = fixed;
+        assert!(!cfg.learns_balance());
+        assert_eq!(grads(&b, &Stage2Model::new(&cfg).unwrap()).d_balance, 0.0);
+    }
+}
+
+/// A step of the balance moves the light and the albedo in opposite directions by the same
+/// factor (the diffuse render unchanged), a checkpoint keeps where it stands, and a run file
+/// from before the balance reads it off.
+#[test]
+fn the_balance_moves_light_and_albedo_together_and_is_checkpointed() {
+    let b = Backend::cpu();
+    let mut cfg = tiny(IndirectMode::Ours, DecoderMode::Separate);
+    cfg.balance_lr_factor = 1.0;
+    cfg.lr_material = 0.0;
+    cfg.lr_indirect = 0.0;
+    cfg.lr_light = 1e-2;
+    let mut t = Stage2Trainer::new(&cfg).unwrap();
+    let e0 = t.model.channel_energies()[0];
+    let mut g = grads(&b, &t.model);
+    g.d_light.iter_mut().for_each(|v| *v = 0.0);
+    g.d_balance = -1.0; // the loss falls as the light brightens
+    assert!(t.apply(g).unwrap().0);
+    let ratio = t.model.channel_energies()[0] / e0;
+    assert!(ratio > 1.005 && ratio < 1.02, "one Adam step of 1e-2 in log: {ratio}");
+    assert!((t.model.albedo_scale * ratio - 1.0).abs() < 1e-5, "albedo scale {} × light ratio {ratio}", t.model.albedo_scale);
+    // A non-finite balance gradient skips the step.
+    let mut bad = grads(&b, &t.model);
+    bad.d_balance = f64::NAN;
+    let before = (t.model.light.clone(), t.model.albedo_scale);
+    assert!(!t.apply(bad).unwrap().0);
+    assert_eq!((t.model.light.clone(), t.model.albedo_scale), before);
+    let dir = std::env::temp_dir().join(format!("pii_balance_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    t.save(&dir, "scene", &t.model.axes()).unwrap();
+    let (back, _, _) = Stage2Trainer::load(&dir, Some("scene")).unwrap();
+    assert_eq!(back.model.albedo_scale, t.model.albedo_scale);
+    std::fs::remove_dir_all(&dir).ok();
+    let mut v = serde_json::to_value(&cfg).unwrap();
+    v.as_object_mut().unwrap().remove("balance_lr_factor");
+    assert!(!serde_json::from_value::<Stage2Config>(v).unwrap().learns_balance());
+}

@@ -638,6 +638,11 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
             "idle_lobe_fraction": super::stage2::IDLE_LOBE_FRACTION,
             "known": cfg.light_fixed,
             "exposure": if cfg.light_fixed { serde_json::json!(trainer.exposure) } else { serde_json::Value::Null },
+            "balance": if cfg.learns_balance() {
+                serde_json::json!({ "albedo_scale": trainer.model.albedo_scale, "light_factor": 1.0 / trainer.model.albedo_scale, "lr_factor": cfg.balance_lr_factor })
+            } else {
+                serde_json::Value::Null
+            },
         },
         "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr_pixels": super::cli::HELD_OUT_PSNR_PIXELS, "psnr": psnr, "per_view": per_view, "seconds": t_eval.elapsed().as_secs_f64() },
         "weak_result": !flags.is_empty(),
