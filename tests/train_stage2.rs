@@ -786,13 +786,15 @@ fn colour_position_gradient_matches_central_differences() {
     use pii_bake::train::stage2::loss_and_grad_with;
     let b = Backend::cpu();
     let w = weights();
-    for (indirect, grid) in [(IndirectMode::Ours, false), (IndirectMode::Ours, true), (IndirectMode::Mii, false)] {
+    // The last case with the light–albedo balance's albedo scale away from 1.
+    for (indirect, grid, albedo_scale) in [(IndirectMode::Ours, false, 1.0), (IndirectMode::Ours, true, 1.0), (IndirectMode::Mii, false, 1.0), (IndirectMode::Ours, true, 0.7)] {
         let mut cfg = tiny(indirect, DecoderMode::Separate);
         cfg.material_encoding = FieldEncoding::Frequency { n_freqs: 2 };
         if grid {
             cfg = cfg.with_material_grid(24, 12);
         }
-        let model = Stage2Model::new(&cfg).unwrap();
+        let mut model = Stage2Model::new(&cfg).unwrap();
+        model.albedo_scale = albedo_scale;
         let bb = boundary_batch(&model);
         let g = loss_and_grad_with(&b, &model, &bb, &w, 7, true).unwrap();
         assert_eq!(g.d_point.len(), bb.len());
