@@ -525,8 +525,12 @@ fn nan_gradients_never_reach_parameters() {
 fn wgpu_matches_cpu_on_one_steps_gradients() {
     let gpu = Backend::wgpu_for_tests().unwrap_or_else(|e| panic!("the test command installs lavapipe: {e}"));
     let cpu = Backend::cpu();
-    let model = Stage2Model::new(&tiny(IndirectMode::Ours, DecoderMode::Separate)).unwrap();
+    // With the light–albedo balance learnt and its albedo scale away from 1.
+    let mut model = Stage2Model::new(&tiny(IndirectMode::Ours, DecoderMode::Separate)).unwrap();
+    assert!(model.cfg.learns_balance(), "new runs learn the balance");
+    model.albedo_scale = 0.8;
     let (a, c) = (grads(&cpu, &model), grads(&gpu, &model));
+    assert!(a.d_balance != 0.0 && (a.d_balance - c.d_balance).abs() <= 1e-3 * a.d_balance.abs(), "balance: cpu {} vs wgpu {}", a.d_balance, c.d_balance);
     assert!((a.stats.loss - c.stats.loss).abs() < 1e-5 * (1.0 + a.stats.loss.abs()), "{} vs {}", a.stats.loss, c.stats.loss);
     let close = |what: &str, x: &[f32], y: &[f32]| {
         let scale = x.iter().fold(0.0f32, |m, v| m.max(v.abs())).max(1e-6);
