@@ -461,7 +461,8 @@ impl Stage2Config {
             // 25.62 · 28.01 / 26.93 · 0.016, seed 1 24.78 · 17.63 / 17.93 · 0.251 -> 25.45 · 28.35 /
             // 27.19 · 0.016 (its light's energy 7.0 -> 11.6, the sky's about 12; albedo scale 0.63
             // -> 1.06 of the truth); the example seed 0 27.29 · 28.44 / 27.11 -> 27.43 · 28.39 /
-            // 27.10, seed 1 27.61 · 28.06 / 26.77 -> 27.55 · 28.27 / 27.00; bowl 19.25 · 20.48 /
+            // 27.10 (27.30 · 28.42 / 27.11 once the cap at 1 was tracked for the perturbed latent
+            // too: the example's balance sits at the cap), seed 1 27.61 · 28.06 / 26.77 -> 27.55 · 28.27 / 27.00; bowl 19.25 · 20.48 /
             // 22.99 -> 19.81 · 20.91 / 23.43; glossy 23.94 · 26.47 / 21.20 -> 23.98 · 26.54 / 21.20;
             // metal 18.31 · 21.08 / 21.30 -> 18.33 · 21.06 / 21.32; spot 27.56 · 28.40 / 27.17 ->
             // 27.67 · 28.39 / 27.22; held-out PSNR of the real captures: the Ethiopian head 22.46 ->
