@@ -312,6 +312,9 @@ pub struct Stage2Config {
     /// A warm-up of 0.25 / 0.75 instead: bowl 19.16 · 20.46 / 23.24 and 19.73 · 20.88 / 23.46,
     /// glossy 23.82 · 26.56 / 21.14 and 23.64 · 26.97 / 21.36; at 0.75 the metal scene falls to
     /// 18.55 · 20.19 / 21.25 (roughness MSE 0.064) and the head stays at 22.43, so 0.5.
+    /// With the light–albedo balance ([`Self::balance_lr_factor`]) the warm-up still pays: without
+    /// it (0) the bunny 25.62 · 28.01 / 26.93 -> 25.20 · 27.64 / 26.61, the bowl 19.81 · 20.91 /
+    /// 23.43 -> 18.96 · 20.20 / 23.23, the example 27.30 · 28.42 / 27.11 -> 27.32 · 28.28 / 27.01.
     /// Run files without the field read 0 and resume as they ran.
     #[serde(default)]
     pub brdf_warmup: f32,
