@@ -473,7 +473,10 @@ impl Stage2Config {
             // 28.27 / 27.10, example 27.62 · 28.16 / 26.87, so the slower rate. Under PhySG's form
             // (the warm-up) the balance reads the highlights as asking for more light than under
             // the calibrated one, and turns back part of the way after it (bunny: light × 2.1 at
-            // step 1200, × 1.6 at the end).
+            // step 1200, × 1.6 at the end). One balance per colour channel (the light's colour
+            // against the albedo's) was tried and not kept: bunny 25.49 · 27.85 / 26.76, example
+            // 27.38 · 28.43 / 27.15, bowl 19.49 · 20.88 / 23.49, glossy 24.03 · 26.96 / 21.50 (the
+            // albedo's tint after it as before, e.g. the example's per-channel scale 1.05 / 0.92 / 0.87).
             balance_lr_factor: 0.3,
         }
     }
