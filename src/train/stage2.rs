@@ -468,7 +468,8 @@ impl Stage2Config {
             // too: the example's balance sits at the cap), seed 1 27.61 · 28.06 / 26.77 -> 27.55 · 28.27 / 27.00; bowl 19.25 · 20.48 /
             // 22.99 -> 19.81 · 20.91 / 23.43; glossy 23.94 · 26.47 / 21.20 -> 23.98 · 26.54 / 21.20;
             // metal 18.31 · 21.08 / 21.30 -> 18.33 · 21.06 / 21.32; spot 27.56 · 28.40 / 27.17 ->
-            // 27.67 · 28.39 / 27.22; held-out PSNR of the real captures: the Ethiopian head 22.46 ->
+            // 27.67 · 28.39 / 27.22; textureless 22.22 · 22.93 / 22.85 · 0.029 -> 21.82 · 25.22 /
+            // 24.88 · 0.021 (its albedo's scale 0.79 -> 1.02 of the truth); held-out PSNR of the real captures: the Ethiopian head 22.46 ->
             // 22.43 dB, DTU scan37 (training views) 15.88 -> 16.16 dB. At 1 (seed 1): bunny 25.69 ·
             // 28.27 / 27.10, example 27.62 · 28.16 / 26.87, so the slower rate. Under PhySG's form
             // (the warm-up) the balance reads the highlights as asking for more light than under
