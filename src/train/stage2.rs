@@ -2265,11 +2265,8 @@ impl Stage2Trainer {
             let d_light = std::mem::take(&mut g.d_light);
             let log = self.cfg().log_amplitude;
             let d_log_scale: f32 = self.model.light.chunks_exact(LIGHT_STRIDE).zip(d_light.chunks_exact(LIGHT_STRIDE)).map(|(p, d)| (4..7).map(|c| if log { d[c] } else { p[c] * d[c] }).sum::<f32>()).sum();
-            let mut log_scale = vec![0.0f32];
-            adam_host(&cfg, &mut log_scale, vec![d_log_scale], &mut self.adam_exposure, ll)?;
-            let (ln_s, s) = (log_scale[0], log_scale[0].exp());
+            let s = scale_amplitudes_step(&cfg, &mut self.model.light, log, d_log_scale, &mut self.adam_exposure, ll)?;
             self.exposure *= s as f64;
-            self.model.light.chunks_exact_mut(LIGHT_STRIDE).for_each(|p| p[4..7].iter_mut().for_each(|m| if log { *m += ln_s } else { *m *= s }));
         } else {
             let before = self.model.light.clone();
             adam_host(&cfg, &mut self.model.light, std::mem::take(&mut g.d_light), &mut self.adam_light, ll)?;
@@ -2287,12 +2284,8 @@ impl Stage2Trainer {
         if self.cfg().learns_balance() {
             // The balance moves the light by e^Δg and the albedo (and ρ) by e^−Δg: folded into
             // the amplitudes and the model's albedo scale, its Adam state kept.
-            let mut dg = vec![0.0f32];
-            let lb = ll * self.cfg().balance_lr_factor;
-            adam_host(&cfg, &mut dg, vec![g.d_balance as f32], &mut self.adam_balance, lb)?;
-            let log = self.cfg().log_amplitude;
-            let (ln_s, s) = (dg[0], dg[0].exp());
-            self.model.light.chunks_exact_mut(LIGHT_STRIDE).for_each(|p| p[4..7].iter_mut().for_each(|m| if log { *m += ln_s } else { *m *= s }));
+            let (lb, log) = (ll * self.cfg().balance_lr_factor, self.cfg().log_amplitude);
+            let s = scale_amplitudes_step(&cfg, &mut self.model.light, log, g.d_balance as f32, &mut self.adam_balance, lb)?;
             self.model.albedo_scale /= s as f64;
         }
         if matches!(self.cfg().indirect, IndirectMode::Ours | IndirectMode::Mii) {
@@ -2458,6 +2451,17 @@ impl Stage2Trainer {
         };
         Ok((t, scene, traced))
     }
+}
+
+/// One Adam step (its own state) on a log-scale of every light amplitude whose gradient is `d`,
+/// folded into the stored amplitudes (added to `ln μ` where `log`, else a factor on `μ`). Returns
+/// the step's factor `e^Δ` (a known light's exposure and the light–albedo balance).
+fn scale_amplitudes_step(cfg: &AdamConfig, light: &mut [f32], log: bool, d: f32, state: &mut AdamState, lr: f32) -> Result<f32, BackendError> {
+    let mut log_scale = vec![0.0f32];
+    adam_host(cfg, &mut log_scale, vec![d], state, lr)?;
+    let (ln_s, s) = (log_scale[0], log_scale[0].exp());
+    light.chunks_exact_mut(LIGHT_STRIDE).for_each(|p| p[4..7].iter_mut().for_each(|m| if log { *m += ln_s } else { *m *= s }));
+    Ok(s)
 }
 
 /// Render cached-style points (forward): linear RGB per point, given per-point blocked lobes.
