@@ -1,8 +1,8 @@
 //! `train --stage material`, `export --run` of a stage-2 run, `relight` and `eval` through the
 //! binary, at tiny sizes: a stage-2 run interrupted and resumed follows the straight run's loss
 //! curve; the export ships learned textures and environment; relight writes what `eval` scores;
-//! bad inputs (no stage-1 run, a run from another scene, a map that is not a latlong HDR, an
-//! unwritable folder) give one clear error naming the file.
+//! bad inputs (no stage-1 run, a run from another scene or preset, a map that is not a latlong
+//! HDR, an unwritable folder) give one clear error naming the file.
 
 use std::path::Path;
 
@@ -227,6 +227,14 @@ fn stage_two_bad_inputs_give_clear_errors() {
     let o = pii(&["train", other.to_str().unwrap(), "--out", run.to_str().unwrap(), "--stage", "material", "--material-iterations", "1", "--downscale", "4"]);
     assert_eq!(o.status.code(), Some(1), "{}", text(&o));
     assert!(text(&o).contains("another scene"), "{}", text(&o));
+
+    // A stage-1 run of another preset: refused, naming its checkpoint; without `--preset` stage 2
+    // follows the run's.
+    assert_eq!(pii_bake::train::cli::run_preset(&run), Some(pii_bake::train::stage1::Preset::Fast));
+    let o = stage2(&run, &["--material-iterations", "1", "--preset", "paper"]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(text(&o).contains("checkpoint.safetensors") && text(&o).contains("fast preset, not paper"), "{}", text(&o));
+    assert!(!run.join("material.safetensors").exists());
 
     // Relight without a stage-2 run, with a map that is not a latlong HDR, into an unwritable folder.
     let rel = dir.path().join("rel");

@@ -40,9 +40,9 @@ pub struct BenchMaterialArgs {
     /// Stage-2 iterations per variant (default: the preset's).
     #[arg(long)]
     pub iterations: Option<u64>,
-    /// Network preset.
-    #[arg(long, value_enum, default_value_t = Preset::Fast)]
-    pub preset: Preset,
+    /// Network preset (default: the stage-1 run's).
+    #[arg(long, value_enum)]
+    pub preset: Option<Preset>,
     /// Test views relit and scored per variant where the scene has ground truth (0 = skip).
     #[arg(long, default_value_t = 2)]
     pub relight_views: usize,
@@ -128,6 +128,7 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
         .map(|d| d.filter_map(|e| e.ok().map(|e| e.path())).filter(|p| p.extension().is_some_and(|e| e == "exr") && p.file_stem().is_some_and(|s| s != "train")).collect())
         .unwrap_or_default();
     let has_gt = scene.join("transforms_test.json").is_file() && !maps.is_empty();
+    let preset = args.preset.or_else(|| super::cli::run_preset(&args.run)).unwrap_or(Preset::Fast);
     let mut rows = Vec::new();
     for &k in &args.lobes {
         let combos = args.indirect.iter().flat_map(|m| args.boundary.iter().flat_map(move |b| args.geometry.iter().map(move |g| (*m, *b, *g))));
@@ -139,7 +140,7 @@ pub fn run(args: &BenchMaterialArgs, ctx: &Context) -> anyhow::Result<()> {
             copy_stage1(&args.run, &dir)?;
             ctx.say(format!("bench material: {variant}"));
             let opts = MaterialOptions { lobes: Some(k), indirect: mode, boundary, refine_geometry: refined, material_iterations: args.iterations, material_set: args.overrides.clone(), known_env: args.known_env.clone(), ..Default::default() };
-            let r = train_stage2(&scene, args.preset, &opts, 0, &dir, false, None, None, &backend, ctx)?;
+            let r = train_stage2(&scene, preset, &opts, 0, &dir, false, None, None, &backend, ctx)?;
             let rep = &r.report;
             let f = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
             let cfg = r.trainer.cfg();

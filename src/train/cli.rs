@@ -91,9 +91,11 @@ pub struct TrainArgs {
     /// Stage to train.
     #[arg(long, value_enum, default_value_t = Stage::Geometry)]
     pub stage: Stage,
-    /// Network preset: `fast` (hash grid, CPU-friendly) or `paper` (IDR's 8×512 networks).
-    #[arg(long, value_enum, default_value_t = Preset::Fast)]
-    pub preset: Preset,
+    /// Network preset: `fast` (hash grid, CPU-friendly) or `paper` (IDR's 8×512 networks)
+    /// (default: the preset of the stage-1 run in `--out` where stage 2 trains on it or a run
+    /// resumes, else fast).
+    #[arg(long, value_enum)]
+    pub preset: Option<Preset>,
     #[command(flatten)]
     pub opts: TrainOptions,
     #[command(flatten)]
@@ -758,21 +760,31 @@ pub fn render_rays(backend: &Backend, model: &Model, tc: &TraceConfig, rays: &Ra
     Ok(out)
 }
 
+/// The preset of the stage-1 run in `run_dir` (its `run.json`), if there is one to read.
+pub fn run_preset(run_dir: &Path) -> Option<Preset> {
+    let v = crate::util::read_json_value(&run_dir.join(super::stage1::RUN_CONFIG)).ok()?;
+    serde_json::from_value(v.get("config")?.get("preset")?.clone()).ok()
+}
+
 pub fn run(args: &TrainArgs, ctx: &Context) -> anyhow::Result<()> {
     let backend = ctx.backend()?;
+    // Stage 2 and a resumed run follow the run's preset unless `--preset` says otherwise (then
+    // a mismatch is an error naming the checkpoint).
+    let follows_run = args.resume || args.stage != Stage::Geometry;
+    let preset = args.preset.or_else(|| follows_run.then(|| run_preset(&args.out)).flatten()).unwrap_or(Preset::Fast);
     match args.stage {
         Stage::Geometry => {
-            let r = train_stage1(&args.scene, args.preset, &args.opts, &args.out, args.resume, args.stop_at, &backend, ctx)?;
+            let r = train_stage1(&args.scene, preset, &args.opts, &args.out, args.resume, args.stop_at, &backend, ctx)?;
             ctx.emit("train", r.report);
         }
         Stage::Material => {
-            let r = super::material::train_stage2(&args.scene, args.preset, &args.material, args.opts.seed, &args.out, args.resume, args.stop_at, None, &backend, ctx)?;
+            let r = super::material::train_stage2(&args.scene, preset, &args.material, args.opts.seed, &args.out, args.resume, args.stop_at, None, &backend, ctx)?;
             ctx.emit("train", r.report);
         }
         Stage::All => {
-            let r1 = train_stage1(&args.scene, args.preset, &args.opts, &args.out, true, None, &backend, ctx)?;
+            let r1 = train_stage1(&args.scene, preset, &args.opts, &args.out, true, None, &backend, ctx)?;
             ctx.emit("train", r1.report.clone());
-            let r = super::material::train_stage2(&args.scene, args.preset, &args.material, args.opts.seed, &args.out, args.resume, args.stop_at, Some(r1.trainer.model()), &backend, ctx)?;
+            let r = super::material::train_stage2(&args.scene, preset, &args.material, args.opts.seed, &args.out, args.resume, args.stop_at, Some(r1.trainer.model()), &backend, ctx)?;
             ctx.emit("train", r.report);
         }
     }
