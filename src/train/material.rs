@@ -97,9 +97,10 @@ pub enum MetallicMode {
 #[derive(Debug, Clone, Default, clap::Args)]
 pub struct KnownEnv {
     /// The capture's lighting, when it was recorded (an on-set HDRI: a latlong .exr in the
-    /// scene's world frame): it is fitted with the stage's SG lobes and its shape kept (one
-    /// exposure is learnt), so light and albedo cannot trade for each other; the stage-2 override
-    /// `light_fixed=false` only starts the light from it.
+    /// scene's world frame): it is fitted with the stage's SG lobes and its shape and colour kept
+    /// (one exposure is learnt, which can still trade with the albedo's brightness); the stage-2
+    /// override `light_fixed=false` only starts the light from it. A learnt light also absorbs what
+    /// the shading model leaves out: on the bundled example a fixed map is worse than none (README)
     #[arg(long = "known-env", value_name = "MAP.exr")]
     pub map: Option<std::path::PathBuf>,
     /// Latlong layout of `--known-env` (`open-exr-usd`: +Y up, centre along +Z; `blender`: a
