@@ -687,3 +687,19 @@ fn a_strongly_tinted_learnt_light_is_flagged_and_real_maps_are_not() {
     // A dark or broken light is not a tint.
     assert!(tinted_light_flag([0.0; 3], false).is_none() && tinted_light_flag([1.0, f64::NAN, 0.1], true).is_none());
 }
+
+#[test]
+fn a_saturated_roughness_is_flagged_and_under_a_recorded_light_the_flag_says_what_to_try() {
+    use pii_bake::train::material::roughness_flag;
+    for r in [0.06, 0.5, 0.94] {
+        assert!(roughness_flag(r, true, true).is_none(), "{r}");
+    }
+    for (r, fixed) in [(0.02, false), (0.02, true), (1.0, false)] {
+        let f = roughness_flag(r, fixed, true).expect("saturated");
+        assert!(f.starts_with("roughness saturated") && !f.contains("known-env"), "{f}");
+    }
+    let f = roughness_flag(0.999, true, true).expect("saturated");
+    assert!(f.contains("(mean 1.00)") && f.contains("without `--known-env`") && f.contains("--metallic off"), "{f}");
+    let f = roughness_flag(0.999, true, false).expect("saturated");
+    assert!(f.contains("without `--known-env`") && !f.contains("--metallic off"), "{f}");
+}

@@ -145,6 +145,26 @@ pub fn tinted_light_flag(energies: [f64; 3], metallic: bool) -> Option<String> {
     ))
 }
 
+/// The report's flag for a mean roughness at either end of its range (below 0.05 or above 0.95);
+/// `None` between. `light_fixed`: the run kept a recorded light (`--known-env`), whose shape and
+/// colour the material cannot move: there a roughness of 1 is where what the light could not take
+/// went (on the bundled example with the map it was rendered under: the exposure learnt to 1.22,
+/// a metallic of 0.31 on a dielectric, albedo 21.4 dB against 27.3 with a learnt light), so the
+/// flag says what to try.
+pub fn roughness_flag(mean_roughness: f64, light_fixed: bool, metallic: bool) -> Option<String> {
+    if !(mean_roughness < 0.05 || mean_roughness > 0.95) {
+        return None;
+    }
+    let mut flag = format!("roughness saturated (mean {mean_roughness:.2})");
+    if light_fixed && mean_roughness > 0.95 {
+        flag.push_str(": under the fixed recorded light (`--known-env`) the material took up what the light could not; compare a bake without `--known-env`");
+        if metallic {
+            flag.push_str(" and one with `--metallic off`");
+        }
+    }
+    Some(flag)
+}
+
 /// A finished stage-2 run.
 pub struct Stage2Run {
     pub trainer: Stage2Trainer,
@@ -602,9 +622,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     if !finite {
         flags.push("non-finite parameters".to_string());
     }
-    if mean_rough < 0.05 || mean_rough > 0.95 {
-        flags.push(format!("roughness saturated (mean {mean_rough:.2})"));
-    }
+    flags.extend(roughness_flag(mean_rough, cfg.light_fixed, cfg.metallic));
     let channel_energy = trainer.model.channel_energies();
     if !cfg.light_fixed {
         flags.extend(tinted_light_flag(channel_energy, cfg.metallic));
