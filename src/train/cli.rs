@@ -446,13 +446,7 @@ pub fn train_stage1(
     let mut mesh_report = serde_json::Value::Null;
     let mut trainer = if let Some((mut t, trained_on)) = loaded {
         super::stage1::check_scene(run_dir, &trained_on, &key)?;
-        if t.cfg.preset != preset {
-            return Err(DataError::new(
-                &run_dir.join(CHECKPOINT),
-                format!("this run uses the {} preset, not {}", t.cfg.preset.name(), preset.name()),
-            )
-            .into());
-        }
+        super::stage1::check_preset(&run_dir.join(CHECKPOINT), t.cfg.preset, preset)?;
         if let Some(n) = opts.iterations {
             t.cfg.iterations = n;
         }

@@ -437,20 +437,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     if key != s1.run_scene.key {
         return Err(DataError::new(&run_dir.join(CHECKPOINT), format!("the stage-1 run here was trained on another scene ({}), not {} ({key})", s1.run_scene.key, scene_path.display())).into());
     }
-    let run_preset = s1.trainer.cfg.preset;
-    if run_preset != preset {
-        return Err(DataError::new(
-            &run_dir.join(CHECKPOINT),
-            format!(
-                "the stage-1 run here was trained with the {} preset, not {}: train stage 2 with `--preset {}` (or without `--preset`), or the geometry again with `--preset {}`",
-                run_preset.name(),
-                preset.name(),
-                run_preset.name(),
-                preset.name()
-            ),
-        )
-        .into());
-    }
+    super::stage1::check_preset(&run_dir.join(CHECKPOINT), s1.trainer.cfg.preset, preset)?;
     let data = TrainData::new(&views, 1.0)?;
     let (mut cfg, why) = stage2_config(preset, scene.format, &data, &s1.trainer.cfg.sizes, opts, seed)?;
     let mut curve = Vec::new();
@@ -461,9 +448,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     }
     let (mut trainer, traced) = if resuming {
         let (mut t, _, traced) = Stage2Trainer::load(run_dir, Some(&key))?;
-        if t.cfg().preset != preset {
-            return Err(DataError::new(&run_dir.join(CHECKPOINT2), format!("this stage-2 run uses the {} preset, not {}", t.cfg().preset.name(), preset.name())).into());
-        }
+        super::stage1::check_preset(&run_dir.join(CHECKPOINT2), t.cfg().preset, preset)?;
         if let Some(n) = opts.material_iterations {
             t.model.cfg.iterations = n;
         }

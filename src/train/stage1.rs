@@ -1936,6 +1936,23 @@ pub fn check_scene(dir: &Path, trained_on: &str, expected: &str) -> Result<(), D
     Err(DataError::new(&dir.join(CHECKPOINT), format!("this run was trained on another scene ({trained_on}), not {expected}")))
 }
 
+/// A run's checkpoint trained with another preset than the one asked for: the error names it and
+/// says how to follow the run (stage 1 resumed, stage 2 on its stage 1, stage 2 resumed).
+pub fn check_preset(checkpoint: &Path, trained: Preset, asked: Preset) -> Result<(), DataError> {
+    if trained == asked {
+        return Ok(());
+    }
+    Err(DataError::new(
+        checkpoint,
+        format!(
+            "this run was trained with the {} preset, not {}: leave `--preset` out to follow it, or train a new run with `--preset {}`",
+            trained.name(),
+            asked.name(),
+            asked.name()
+        ),
+    ))
+}
+
 /// A checkpoint tensor that must exist, hold `len` values and be finite; the errors name the file
 /// (`needs`/`hint` word the length mismatch for the caller's model).
 pub(crate) fn checked_tensor(st: &ParamStore, path: &Path, name: &str, len: usize, needs: &str, hint: &str) -> Result<Vec<f32>, DataError> {
