@@ -748,3 +748,42 @@ fn photo_consistency_moves_only_the_sdf_fades_out_and_old_runs_leave_it_off() {
     assert_eq!(on.model().radiance_params, off.model().radiance_params);
     assert!(on.model().sdf_params.iter().all(|v| v.is_finite()));
 }
+
+/// A small MLP of the paper preset's kind (frequency encoding, Softplus, weight norm, skip).
+fn small_paper_config() -> Stage1Config {
+    let mut cfg = Stage1Config::for_scene(Preset::Paper, TraceMode::Refined, InitMode::Hull, &[], 0, 1);
+    cfg.field.widths = vec![64; 4];
+    cfg.field.skip_layers = vec![2];
+    cfg.field.feature_dim = 8;
+    cfg.hull_fit_points = 512;
+    cfg
+}
+
+#[test]
+fn a_fit_that_diverges_starts_again_slower_and_one_that_never_lands_says_what_to_set() {
+    // The paper preset's deep MLP fitted at a hash grid's rate goes positive everywhere (the
+    // 8x512 network at 5e-3: the centre of its target ends at +1.07, and stage 1 then traces no
+    // surface at all). The fit checks its signs on the target's voxels and refits from its start
+    // at a quarter of the rate.
+    let b = Backend::cpu();
+    let grid = sphere_grid(32);
+    let inside_outside = |t: &Trainer| t.model().sdf(&b, &[0.0, 0.0, 0.0, 0.9, 0.9, 0.9]).unwrap();
+    let mut ok = Trainer::new(Stage1Config { hull_fit_lr: 5e-4, ..small_paper_config() }).unwrap();
+    ok.fit_to_grid(&b, &grid, 40, |_, _| {}).unwrap();
+    assert_eq!(ok.fit_rate, Some(5e-4), "a fit that lands keeps its rate");
+    // So does one too short to land (`--init-steps 1`), which has not diverged either.
+    let mut short = Trainer::new(Stage1Config { hull_fit_lr: 5e-4, ..small_paper_config() }).unwrap();
+    short.fit_to_grid(&b, &grid, 1, |_, _| {}).unwrap();
+    assert_eq!(short.fit_rate, Some(5e-4));
+    let high = 0.02f32;
+    let mut t = Trainer::new(Stage1Config { hull_fit_lr: high, ..small_paper_config() }).unwrap();
+    let loss = t.fit_to_grid(&b, &grid, 40, |_, _| {}).unwrap();
+    let rate = t.fit_rate.unwrap();
+    assert!(rate < high && loss.is_finite(), "rate {rate} loss {loss}");
+    let f = inside_outside(&t);
+    assert!(f[0] < 0.0 && f[1] > 0.0, "{f:?}");
+    // A rate no retry brings low enough: an error naming the setting, every rate tried listed.
+    let mut t = Trainer::new(Stage1Config { hull_fit_lr: 1e3, ..small_paper_config() }).unwrap();
+    let e = t.fit_to_grid(&b, &grid, 40, |_, _| {}).unwrap_err().to_string();
+    assert!(e.contains("hull_fit_lr") && e.matches("of voxels on the right side").count() == 3, "{e}");
+}

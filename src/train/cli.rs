@@ -507,7 +507,7 @@ pub fn train_stage1(
             let err = t.fit_to_grid(backend, &grid, cfg.mesh_fit_steps, |s, _| pb.set_position(s + 1))?;
             pb.finish_and_clear();
             seconds_init = ti.elapsed().as_secs_f64();
-            mesh_report = serde_json::json!({ "mesh": mesh_path.display().to_string(), "triangles": mesh.triangles.len(), "resolution": res, "voxels_inside": inside, "fit_steps": cfg.mesh_fit_steps, "fit_loss": err, "seconds": seconds_init });
+            mesh_report = serde_json::json!({ "mesh": mesh_path.display().to_string(), "triangles": mesh.triangles.len(), "resolution": res, "voxels_inside": inside, "fit_steps": cfg.mesh_fit_steps, "fit_loss": err, "fit_rate": t.fit_rate, "seconds": seconds_init });
             ctx.say(format!("mesh init: {} ({} triangles) as a {res}^3 signed distance, {} fit steps, loss {err:.5} [{seconds_init:.1} s]", mesh_path.display(), mesh.triangles.len(), cfg.mesh_fit_steps));
         } else if cfg.init == InitMode::Hull {
             let ti = Instant::now();
@@ -529,7 +529,7 @@ pub fn train_stage1(
             let err = t.fit_to_grid(backend, &grid, cfg.hull_fit_steps, |s, _| pb.set_position(s + 1))?;
             pb.finish_and_clear();
             seconds_init = ti.elapsed().as_secs_f64();
-            hull_report = serde_json::json!({ "resolution": res, "voxels_inside": n_in, "concavities": hull.concavities, "fit_steps": cfg.hull_fit_steps, "fit_loss": err, "seconds": seconds_init });
+            hull_report = serde_json::json!({ "resolution": res, "voxels_inside": n_in, "concavities": hull.concavities, "fit_steps": cfg.hull_fit_steps, "fit_loss": err, "fit_rate": t.fit_rate, "seconds": seconds_init });
             ctx.say(format!("hull init: {res}^3 hull, {} fit steps, loss {err:.4} [{seconds_init:.1} s]", cfg.hull_fit_steps));
         }
         t

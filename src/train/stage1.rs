@@ -434,6 +434,14 @@ impl Stage1Config {
                 mask_samples: 100,
                 out_of_mask_min_sdf: true,
                 checkpoint_every: 50,
+                // The hash grid's 5e-3 sends this MLP positive everywhere: on the example (the
+                // preset's 200 steps at 2048 points) stage 1 then traced no surface at all
+                // (`surface_rays` 0 in every step), and on an H200 `bench train` ended with "no
+                // inside anywhere". Fitted to an ellipsoid's distance grid (64^3, 1024 points,
+                // 100 steps, decaying to 0.1 of the rate), final loss: 5e-3 diverges by step 10
+                // (0.027 -> 0.066, its centre at +1.07 after 40 steps), 2e-3 0.0078 (recovering
+                // from a rise to 0.067), 1e-3 0.0025, 5e-4 0.0022, 2e-4 0.0023.
+                hull_fit_lr: 5e-4,
                 appearance_grid: false,
                 smoothness_weight: 0.0,
                 // Not measured on the paper preset: IDR's losses alone.
@@ -1487,6 +1495,8 @@ pub struct Trainer {
     device: Option<DeviceParams>,
     /// The photo-consistency term's cameras and filtered photos, while its weight is above zero.
     multiview: Option<super::multiview::MultiView>,
+    /// The starting rate of the last [`Trainer::fit_to_grid`] that landed (None before any).
+    pub fit_rate: Option<f32>,
 }
 
 /// The parameters and Adam moments a wgpu run keeps on the device
@@ -1534,6 +1544,13 @@ fn adam_sdf_on_device(
 
 /// Checkpoint file names inside a run folder.
 pub const CHECKPOINT: &str = "checkpoint.safetensors";
+
+/// [`Trainer::fit_to_grid`] lands when at least this share of the target's voxels clear of its
+/// surface (inside and outside weighted equally) end on the right side, or no fewer than before
+/// it (a fit too short to land, not one that diverged).
+pub const FIT_MIN_SIGN_AGREEMENT: f64 = 0.9;
+/// [`Trainer::fit_to_grid`] starts again at a quarter of the rate at most this many times.
+pub const FIT_RETRIES: usize = 2;
 pub const RUN_CONFIG: &str = "run.json";
 
 impl Trainer {
@@ -1543,7 +1560,7 @@ impl Trainer {
         let host = Backend::cpu();
         let adam_sdf = AdamState::new(&host, model.sdf_params.len());
         let adam_radiance = AdamState::new(&host, model.radiance_params.len());
-        Ok(Self { cfg, model, adam_sdf, adam_radiance, step: 0, skipped: 0, host, device: None, multiview: None })
+        Ok(Self { cfg, model, adam_sdf, adam_radiance, step: 0, skipped: 0, host, device: None, multiview: None, fit_rate: None })
     }
 
     /// The model. Its grids' parameters are the host copy: after training on wgpu call
@@ -1785,9 +1802,86 @@ impl Trainer {
         Ok((true, norm))
     }
 
-    /// Fit the SDF to a signed distance grid (the visual hull) for `steps` steps: L1 on the
+    /// Fit the SDF to a signed distance grid (the visual hull, a given mesh, the ground truth)
+    /// for `steps` steps at `hull_fit_lr` decaying to `hull_fit_lr_final` of it: L1 on the
     /// distance within ±`clamp`, plus the eikonal term. Returns the final mean error.
+    ///
+    /// The fit is checked: where it has not landed on the grid's inside and outside
+    /// ([`FIT_MIN_SIGN_AGREEMENT`], voxels clear of the surface) and ends worse than it began,
+    /// the rate was too high for the network (a deep MLP at a hash grid's rate goes positive everywhere and never finds its
+    /// surface again), so it starts again from the parameters it began with at a quarter of the
+    /// rate, [`FIT_RETRIES`] times at most, then fails with an error that says what to set.
+    /// [`Trainer::fit_rate`] is the rate that landed.
     pub fn fit_to_grid(&mut self, backend: &Backend, grid: &super::hull::Grid3, steps: u64, mut progress: impl FnMut(u64, f64)) -> Result<f64, BackendError> {
+        if steps == 0 {
+            return Ok(f64::NAN);
+        }
+        let start = self.current_sdf_params()?;
+        let before = self.sign_agreement(backend, grid)?;
+        let mut lr = self.cfg.hull_fit_lr;
+        let mut tried = Vec::new();
+        loop {
+            let loss = self.fit_at(backend, grid, steps, lr, &mut progress)?;
+            let agreement = self.sign_agreement(backend, grid)?;
+            // Landed, or at least not worse than where it began (a short fit, `--init-steps`).
+            if agreement >= FIT_MIN_SIGN_AGREEMENT.min(before) {
+                self.fit_rate = Some(lr);
+                return Ok(loss);
+            }
+            tried.push(format!("{lr:.1e} ({:.0}% of voxels on the right side)", 100.0 * agreement));
+            if tried.len() > FIT_RETRIES {
+                return Err(BackendError::Config(format!(
+                    "stage 1: the SDF's fit to its {}^3 target did not land at any rate tried: {}; set a lower rate with `--geometry-set hull_fit_lr=<rate>`",
+                    grid.res,
+                    tried.join(", ")
+                )));
+            }
+            tracing::warn!("stage 1: the SDF's fit to its target diverged at rate {lr:.1e} ({:.0}% of voxels on the right side); fitting again from the start at {:.1e}", 100.0 * agreement, 0.25 * lr);
+            self.host_only()?;
+            self.model.sdf_params.copy_from_slice(&start);
+            lr *= 0.25;
+        }
+    }
+
+    /// The SDF's current parameters: the host copy, or the device's where that is newer (read
+    /// back alone, without the Adam moments).
+    fn current_sdf_params(&self) -> Result<Vec<f32>, BackendError> {
+        match self.device.as_ref().filter(|d| !d.host_current) {
+            Some(d) => {
+                let (mut a, b) = d.backend.to_vec2(&d.params[0], &d.params[1])?;
+                a.extend(b);
+                Ok(a)
+            }
+            None => Ok(self.model.sdf_params.clone()),
+        }
+    }
+
+    /// Of the voxels of `grid` at least two cells from its zero level, the fraction the SDF puts
+    /// on the same side, inside and outside weighted equally (so a small object cannot pass on
+    /// its outside alone). At most about 20k voxels, on a fixed stride.
+    fn sign_agreement(&self, backend: &Backend, grid: &super::hull::Grid3) -> Result<f64, BackendError> {
+        let h = grid.spacing();
+        let stride = (grid.data.len() / 20_000).max(1);
+        let idx: Vec<usize> = (0..grid.data.len()).step_by(stride).filter(|&i| grid.data[i].abs() >= 2.0 * h).collect();
+        let pts: Vec<f32> = idx.iter().flat_map(|&i| grid.centre(i % grid.res, (i / grid.res) % grid.res, i / (grid.res * grid.res))).collect();
+        // Evaluated with the current copy (the device's, pinned, where it is newer).
+        let pin = self.pin_sdf(backend, self.on_device(backend) && self.device.is_some())?;
+        let f = self.model.sdf(backend, &pts)?;
+        drop(pin);
+        let (mut ok, mut n) = ([0usize; 2], [0usize; 2]);
+        for (k, &i) in idx.iter().enumerate() {
+            let side = usize::from(grid.data[i] > 0.0);
+            n[side] += 1;
+            if (f[k] > 0.0) == (side == 1) {
+                ok[side] += 1;
+            }
+        }
+        let frac = |s: usize| if n[s] == 0 { 1.0 } else { ok[s] as f64 / n[s] as f64 };
+        Ok(0.5 * (frac(0) + frac(1)))
+    }
+
+    /// One fit ([`Trainer::fit_to_grid`]) at starting rate `lr0`.
+    fn fit_at(&mut self, backend: &Backend, grid: &super::hull::Grid3, steps: u64, lr0: f32, progress: &mut impl FnMut(u64, f64)) -> Result<f64, BackendError> {
         let n = self.cfg.hull_fit_points.max(2);
         let clamp = 0.1f32;
         // Points near the hull's surface (voxels within two cells of the zero level) and uniform ones.
@@ -1847,7 +1941,7 @@ impl Trainer {
                 (l, g)
             })?;
             drop(pin);
-            let lr = self.cfg.hull_fit_lr * self.cfg.hull_fit_lr_final.powf(s as f32 / steps.max(1) as f32);
+            let lr = lr0 * self.cfg.hull_fit_lr_final.powf(s as f32 / steps.max(1) as f32);
             let cfg = self.adam();
             match (self.device.as_mut().filter(|_| device), &mut fit_state[..]) {
                 (Some(dev), [a0, a1]) => {
