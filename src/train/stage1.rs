@@ -1544,6 +1544,7 @@ fn adam_sdf_on_device(
 
 /// Checkpoint file names inside a run folder.
 pub const CHECKPOINT: &str = "checkpoint.safetensors";
+pub const RUN_CONFIG: &str = "run.json";
 
 /// [`Trainer::fit_to_grid`] lands when at least this share of the target's voxels clear of its
 /// surface (inside and outside weighted equally) end on the right side, or no fewer than before
@@ -1551,7 +1552,6 @@ pub const CHECKPOINT: &str = "checkpoint.safetensors";
 pub const FIT_MIN_SIGN_AGREEMENT: f64 = 0.9;
 /// [`Trainer::fit_to_grid`] starts again at a quarter of the rate at most this many times.
 pub const FIT_RETRIES: usize = 2;
-pub const RUN_CONFIG: &str = "run.json";
 
 impl Trainer {
     pub fn new(cfg: Stage1Config) -> Result<Self, BackendError> {
@@ -1808,9 +1808,10 @@ impl Trainer {
     ///
     /// The fit is checked: where it has not landed on the grid's inside and outside
     /// ([`FIT_MIN_SIGN_AGREEMENT`], voxels clear of the surface) and ends worse than it began,
-    /// the rate was too high for the network (a deep MLP at a hash grid's rate goes positive everywhere and never finds its
-    /// surface again), so it starts again from the parameters it began with at a quarter of the
-    /// rate, [`FIT_RETRIES`] times at most, then fails with an error that says what to set.
+    /// the rate was too high for the network (a deep MLP at a hash grid's rate goes positive
+    /// everywhere and never finds its surface again), so it starts again from the parameters it
+    /// began with at a quarter of the rate, [`FIT_RETRIES`] times at most, then fails with an
+    /// error that says what to set.
     /// [`Trainer::fit_rate`] is the rate that landed.
     pub fn fit_to_grid(&mut self, backend: &Backend, grid: &super::hull::Grid3, steps: u64, mut progress: impl FnMut(u64, f64)) -> Result<f64, BackendError> {
         if steps == 0 {
