@@ -34,6 +34,11 @@ impl Grid3 {
         [c(i), c(j), c(k)]
     }
 
+    /// Centre of the voxel at `index` in `data` (x fastest).
+    pub fn centre_of(&self, index: usize) -> [f32; 3] {
+        self.centre(index % self.res, (index / self.res) % self.res, index / (self.res * self.res))
+    }
+
     fn at(&self, i: usize, j: usize, k: usize) -> f32 {
         self.data[(k * self.res + j) * self.res + i]
     }

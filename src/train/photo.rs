@@ -587,7 +587,7 @@ mod tests {
         let g = Grid3::new(res, bound, 0.0);
         let inside: Vec<bool> = (0..res * res * res)
             .map(|i| {
-                let c = g.centre(i % res, (i / res) % res, i / (res * res));
+                let c = g.centre_of(i);
                 let da = ((c[0] + 0.4).powi(2) + c[1] * c[1] + c[2] * c[2]).sqrt();
                 let db = ((c[0] - 0.4).powi(2) + c[1] * c[1] + c[2] * c[2]).sqrt();
                 da < 0.25 || db < 0.25
@@ -712,7 +712,7 @@ mod tests {
         let (res, bound) = (36, 1.0);
         let g = Grid3::new(res, bound, 0.0);
         // The hull the masks give: the whole box (the pit does not show in any silhouette).
-        let centres: Vec<[f32; 3]> = (0..res * res * res).map(|i| g.centre(i % res, (i / res) % res, i / (res * res))).collect();
+        let centres: Vec<[f32; 3]> = (0..res * res * res).map(|i| g.centre_of(i)).collect();
         let box_only = |p: &[f32; 3]| p[0].abs() < 0.5 && p[1].abs() < 0.5 && p[2].abs() < 0.5;
         let mut inside: Vec<bool> = centres.iter().map(box_only).collect();
         let pit: Vec<usize> = (0..inside.len()).filter(|&i| inside[i] && PitScene::sdf(centres[i]) > 0.0).collect();
@@ -774,7 +774,7 @@ mod tests {
         let g = Grid3::new(res, bound, 0.0);
         let mut inside: Vec<bool> = (0..res * res * res)
             .map(|i| {
-                let p = g.centre(i % res, (i / res) % res, i / (res * res));
+                let p = g.centre_of(i);
                 p[0].abs() < 0.5 && p[1].abs() < 0.5 && p[2].abs() < 0.5
             })
             .collect();

@@ -556,7 +556,7 @@ mod tests {
         let g = Grid3::new(res, 1.0, 0.0);
         let inside: Vec<bool> = (0..res * res * res)
             .map(|i| {
-                let c = g.centre(i % res, (i / res) % res, i / (res * res));
+                let c = g.centre_of(i);
                 ((c[0] - 0.2).powi(2) + c[1] * c[1] + c[2] * c[2]).sqrt() < r
             })
             .collect();

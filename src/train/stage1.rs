@@ -1864,9 +1864,9 @@ impl Trainer {
         let h = grid.spacing();
         let stride = (grid.data.len() / 20_000).max(1);
         let idx: Vec<usize> = (0..grid.data.len()).step_by(stride).filter(|&i| grid.data[i].abs() >= 2.0 * h).collect();
-        let pts: Vec<f32> = idx.iter().flat_map(|&i| grid.centre(i % grid.res, (i / grid.res) % grid.res, i / (grid.res * grid.res))).collect();
+        let pts: Vec<f32> = idx.iter().flat_map(|&i| grid.centre_of(i)).collect();
         // Evaluated with the current copy (the device's, pinned, where it is newer).
-        let pin = self.pin_sdf(backend, self.on_device(backend) && self.device.is_some())?;
+        let pin = self.pin_sdf(backend, self.on_device(backend))?;
         let f = self.model.sdf(backend, &pts)?;
         drop(pin);
         let (mut ok, mut n) = ([0usize; 2], [0usize; 2]);
@@ -1888,7 +1888,7 @@ impl Trainer {
         // Points near the hull's surface (voxels within two cells of the zero level) and uniform ones.
         let near: Vec<[f32; 3]> = (0..grid.data.len())
             .filter(|&i| grid.data[i].abs() < 2.0 * grid.spacing())
-            .map(|i| grid.centre(i % grid.res, (i / grid.res) % grid.res, i / (grid.res * grid.res)))
+            .map(|i| grid.centre_of(i))
             .collect();
         let mut last = f64::NAN;
         // The fit sees every level: the hull's distance is known everywhere, so the fine levels
