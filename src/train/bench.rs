@@ -4,8 +4,9 @@
 //! to the object's size) and normal consistency against the scene's ground-truth mesh, with the
 //! clock paused. The visual hull (the preview bake's geometry) is measured the same way as the
 //! baseline. Writes `bench-train.csv`, `bench-train.json` (iterations/s, time to reach half the
-//! hull's Chamfer, held-out PSNR and mask IoU at the end) and `bench-train.svg` (Chamfer against
-//! wall time, one curve per variant).
+//! hull's Chamfer, held-out PSNR and mask IoU at the end), `bench-train-time-to-accuracy.csv`
+//! (each variant's time to one accuracy per scene, and its ratio to the first variant's) and
+//! `bench-train.svg` (Chamfer against wall time, one curve per variant, the targets dashed).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -77,6 +78,115 @@ pub struct BenchTrainArgs {
     /// `MeshConfig::face_tolerance_deg`) as well (default: the shipped one).
     #[arg(long, num_args = 1.., value_parser = crate::export::parse_face_tolerance)]
     pub asset_face_tolerance: Vec<f32>,
+    /// The Chamfer every variant is timed to (% of the object's size, as printed), the same on
+    /// every scene, so that runs on two machines time the same accuracy (default: per scene,
+    /// 10% above the best Chamfer any variant of the run reached there).
+    #[arg(long, value_parser = parse_target_chamfer)]
+    pub target_chamfer: Option<f64>,
+}
+
+fn parse_target_chamfer(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+        _ => Err(format!("{s:?}: a Chamfer in % of the object's size, > 0 (e.g. 0.2)")),
+    }
+}
+
+/// Without `--target-chamfer`, a scene's variants are timed to this factor times the best
+/// Chamfer any of them reached on it. Half the hull's Chamfer (the summary's
+/// `seconds_to_half_hull_chamfer`) lies below what every variant reaches on most scenes (the
+/// example's hull measures 0.307% at 96^3, the best variant 0.175%), so it times nothing there;
+/// a target taken from the run itself always times at least the best variant, and 10% leaves
+/// room for the step-to-step spread of a converged curve (the fast preset's last five points on
+/// the example, 0.175–0.182%, spread by 4% of their Chamfer).
+pub const TARGET_MARGIN: f64 = 1.1;
+
+/// One variant's time to a scene's target accuracy (`time_to_accuracy`).
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct TimeToAccuracy {
+    pub scene: String,
+    pub variant: String,
+    pub target_chamfer_rel: f64,
+    /// The wall time (training, fits included) of the first measurement at or under the target;
+    /// `None`: not within the variant's budget.
+    pub seconds: Option<f64>,
+    /// The wall time the variant trained for: a lower bound on its time where it did not reach.
+    pub trained_seconds: f64,
+    /// Its time over the first variant's (the first of `--variant` measured on the scene); where
+    /// it did not reach the target, `trained_seconds` over the first's time, a lower bound.
+    /// `None` where the first variant did not reach it, or reached it at once.
+    pub ratio_to_first: Option<f64>,
+    pub ratio_is_lower_bound: bool,
+}
+
+/// Each variant's time to the same accuracy on each scene, from the measured curves (`points`, in
+/// the order measured), and its ratio to the first variant's: the time-to-accuracy ratios
+/// (tracing, init, preset) read side by side from one run. `variants` lists the trained variants
+/// in `--variant` order (the baselines' points are not timed); `target` (a fraction of the size)
+/// fixes the accuracy, else it is `TARGET_MARGIN` times the best any variant reached on the scene.
+pub fn time_to_accuracy(points: &[CurvePoint], variants: &[String], target: Option<f64>) -> Vec<TimeToAccuracy> {
+    let mut scenes: Vec<&str> = Vec::new();
+    for p in points {
+        if !scenes.contains(&p.scene.as_str()) {
+            scenes.push(&p.scene);
+        }
+    }
+    let mut out = Vec::new();
+    for scene in scenes {
+        fn measured<'a>(points: &'a [CurvePoint], scene: &'a str, v: &'a str) -> impl Iterator<Item = &'a CurvePoint> + 'a {
+            points.iter().filter(move |p| p.scene == scene && p.variant == v && p.chamfer_rel.is_finite())
+        }
+        let curve = |v| measured(points, scene, v);
+        let best = variants.iter().flat_map(|v| curve(v)).map(|p| p.chamfer_rel).fold(f64::INFINITY, f64::min);
+        if !best.is_finite() {
+            continue;
+        }
+        let target = target.unwrap_or(TARGET_MARGIN * best);
+        let mut first: Option<Option<f64>> = None;
+        for v in variants {
+            if curve(v).next().is_none() {
+                continue;
+            }
+            let seconds = curve(v).find(|p| p.chamfer_rel <= target).map(|p| p.wall_seconds);
+            let trained_seconds = curve(v).map(|p| p.wall_seconds).fold(0.0, f64::max);
+            let reference = *first.get_or_insert(seconds);
+            let ratio_to_first = reference.filter(|&r| r > 0.0).map(|r| seconds.unwrap_or(trained_seconds) / r);
+            out.push(TimeToAccuracy {
+                scene: scene.to_string(),
+                variant: v.clone(),
+                target_chamfer_rel: target,
+                seconds,
+                trained_seconds,
+                ratio_to_first,
+                ratio_is_lower_bound: seconds.is_none() && ratio_to_first.is_some(),
+            });
+        }
+    }
+    out
+}
+
+/// `time_to_accuracy`'s rows as one line per scene, as the bench prints them.
+fn describe_time_to_accuracy(rows: &[TimeToAccuracy], fixed: bool) -> Vec<String> {
+    let mut lines: Vec<String> = Vec::new();
+    let mut scene: Option<&str> = None;
+    for r in rows {
+        let cell = match (r.seconds, r.ratio_to_first) {
+            (Some(s), Some(q)) => format!("{} {s:.1} s ({q:.2}x)", r.variant),
+            (Some(s), None) => format!("{} {s:.1} s", r.variant),
+            (None, Some(q)) => format!("{} not within {:.0} s (> {q:.1}x)", r.variant, r.trained_seconds),
+            (None, None) => format!("{} not within {:.0} s", r.variant, r.trained_seconds),
+        };
+        if scene == Some(r.scene.as_str()) {
+            if let Some(l) = lines.last_mut() {
+                l.push_str(&format!(", {cell}"));
+            }
+        } else {
+            let how = if fixed { "--target-chamfer" } else { "10% above the best reached" };
+            lines.push(format!("{}: time to Chamfer <= {:.3}% ({how}): {cell}", r.scene, 100.0 * r.target_chamfer_rel));
+            scene = Some(&r.scene);
+        }
+    }
+    lines
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -213,6 +323,7 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
         args.variant.clone()
     };
     let parsed: Vec<_> = variants.iter().map(|v| parse_variant(v)).collect::<anyhow::Result<_>>()?;
+    let target_chamfer = args.target_chamfer.map(|percent| percent / 100.0);
     let mut points: Vec<CurvePoint> = Vec::new();
     let mut summary = Vec::new();
     let mut references: Vec<serde_json::Value> = Vec::new();
@@ -364,7 +475,7 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
                 serde_json::json!({ "scene": sname, "variant": name, "backend": backend.describe(), "error": format!("{e:#}") })
             });
             summary.push(row);
-            json = write_outputs(&args.out, &summary, &references, &points)?;
+            json = write_outputs(&args.out, &summary, &references, &points, &time_to_accuracy(&points, &variants, target_chamfer))?;
         }
     }
     if !summary.is_empty() && summary.iter().all(|s| s.get("error").is_some()) {
@@ -373,25 +484,34 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
     for s in &summary {
         ctx.say(s.to_string());
     }
+    for line in describe_time_to_accuracy(&time_to_accuracy(&points, &variants, target_chamfer), target_chamfer.is_some()) {
+        ctx.say(line);
+    }
     ctx.emit("bench_train", json);
     ctx.say(format!("wrote {}/bench-train.{{csv,json,svg}}", args.out.display()));
     Ok(())
 }
 
 /// Write `bench-train.{csv,json,svg}` from what is measured so far; returns the JSON.
-fn write_outputs(out: &Path, summary: &[serde_json::Value], references: &[serde_json::Value], points: &[CurvePoint]) -> anyhow::Result<serde_json::Value> {
+fn write_outputs(out: &Path, summary: &[serde_json::Value], references: &[serde_json::Value], points: &[CurvePoint], timed: &[TimeToAccuracy]) -> anyhow::Result<serde_json::Value> {
     let mut csv = String::from("scene,variant,backend,step,wall_seconds,chamfer_rel,normal_consistency\n");
     for p in points {
         csv.push_str(&format!("{},{},{},{},{:.3},{:.6},{:.5}\n", p.scene, p.variant, p.backend, p.step, p.wall_seconds, p.chamfer_rel, p.normal_consistency));
     }
     crate::util::atomic_write(&out.join("bench-train.csv"), csv.as_bytes())?;
-    let json = serde_json::json!({ "machine_threads": rayon::current_num_threads(), "summary": summary, "ground_truth_reference": references, "points": points });
+    let cell = |v: Option<f64>| v.map(|x| format!("{x:.3}")).unwrap_or_default();
+    let mut csv = String::from("scene,variant,target_chamfer_rel,seconds_to_target,trained_seconds,ratio_to_first,ratio_is_lower_bound\n");
+    for t in timed {
+        csv.push_str(&format!("{},{},{:.6},{},{:.3},{},{}\n", t.scene, t.variant, t.target_chamfer_rel, cell(t.seconds), t.trained_seconds, cell(t.ratio_to_first), t.ratio_is_lower_bound));
+    }
+    crate::util::atomic_write(&out.join("bench-train-time-to-accuracy.csv"), csv.as_bytes())?;
+    let json = serde_json::json!({ "machine_threads": rayon::current_num_threads(), "summary": summary, "time_to_accuracy": timed, "ground_truth_reference": references, "points": points });
     crate::util::atomic_write(&out.join("bench-train.json"), serde_json::to_string_pretty(&json)?.as_bytes())?;
-    crate::util::atomic_write(&out.join("bench-train.svg"), chart(points)?.as_bytes())?;
+    crate::util::atomic_write(&out.join("bench-train.svg"), chart(points, timed)?.as_bytes())?;
     Ok(json)
 }
 
-fn chart(points: &[CurvePoint]) -> anyhow::Result<String> {
+fn chart(points: &[CurvePoint], timed: &[TimeToAccuracy]) -> anyhow::Result<String> {
     use plotters::prelude::*;
     let mut series: Vec<(String, String)> = Vec::new();
     for p in points {
@@ -432,8 +552,72 @@ fn chart(points: &[CurvePoint]) -> anyhow::Result<String> {
                 .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], color.stroke_width(2)));
             chart.draw_series(pts.iter().map(|&p| Circle::new(p, 3, color.filled()))).map_err(|e| anyhow::anyhow!("chart: {e}"))?;
         }
+        // Each scene's target accuracy, dashed (once per scene).
+        let mut drawn: Vec<&str> = Vec::new();
+        for t in timed {
+            let y = 100.0 * t.target_chamfer_rel;
+            if drawn.contains(&t.scene.as_str()) || !(cmin..cmax).contains(&y) {
+                continue;
+            }
+            drawn.push(&t.scene);
+            chart
+                .draw_series(DashedLineSeries::new(vec![(0.0, y), (tmax, y)], 6, 4, BLACK.mix(0.5).stroke_width(1)))
+                .map_err(|e| anyhow::anyhow!("chart: {e}"))?
+                .label(format!("{} target {y:.3}%", t.scene))
+                .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], BLACK.mix(0.5)));
+        }
         chart.configure_series_labels().background_style(WHITE.mix(0.8)).border_style(BLACK).draw().map_err(|e| anyhow::anyhow!("chart: {e}"))?;
         root.present().map_err(|e| anyhow::anyhow!("chart: {e}"))?;
     }
     Ok(svg)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pt(scene: &str, variant: &str, wall_seconds: f64, chamfer_rel: f64) -> CurvePoint {
+        CurvePoint { scene: scene.into(), variant: variant.into(), backend: "cpu".into(), step: 0, wall_seconds, chamfer_rel, normal_consistency: 0.9 }
+    }
+
+    #[test]
+    fn every_variant_is_timed_to_one_accuracy_per_scene_and_one_that_never_gets_there_is_a_lower_bound() {
+        let v: Vec<String> = ["fast-refined-hull", "fast-classic-hull", "paper-refined-hull"].iter().map(|s| s.to_string()).collect();
+        let points = vec![
+            // The baseline's points are never timed, even where it is the most accurate.
+            pt("a", "hull (preview)", 0.1, 0.001),
+            pt("a", "fast-refined-hull", 10.0, 0.0030),
+            pt("a", "fast-refined-hull", 20.0, 0.0021),
+            pt("a", "fast-refined-hull", 30.0, 0.0020),
+            pt("a", "fast-classic-hull", 10.0, 0.0030),
+            pt("a", "fast-classic-hull", 40.0, 0.0022),
+            pt("a", "fast-classic-hull", 50.0, f64::NAN),
+            pt("a", "paper-refined-hull", 300.0, 0.0034),
+            pt("a", "paper-refined-hull", 900.0, 0.0034),
+            // A second scene where the first variant never reaches the target: no ratio at all.
+            pt("b", "fast-refined-hull", 5.0, 0.0100),
+            pt("b", "paper-refined-hull", 50.0, 0.0050),
+        ];
+        let t = time_to_accuracy(&points, &v, None);
+        assert_eq!(t.len(), 5, "{t:?}");
+        let a: Vec<&TimeToAccuracy> = t.iter().filter(|r| r.scene == "a").collect();
+        // 10% above the best trained Chamfer (0.0020), not the baseline's.
+        assert!(a.iter().all(|r| (r.target_chamfer_rel - 0.0022).abs() < 1e-12), "{a:?}");
+        assert_eq!((a[0].seconds, a[0].ratio_to_first, a[0].ratio_is_lower_bound), (Some(20.0), Some(1.0), false));
+        assert_eq!((a[1].seconds, a[1].ratio_to_first, a[1].ratio_is_lower_bound), (Some(40.0), Some(2.0), false));
+        assert_eq!(a[1].trained_seconds, 40.0, "the NaN point is not a measurement");
+        assert_eq!((a[2].seconds, a[2].trained_seconds, a[2].ratio_to_first, a[2].ratio_is_lower_bound), (None, 900.0, Some(45.0), true));
+        let b: Vec<&TimeToAccuracy> = t.iter().filter(|r| r.scene == "b").collect();
+        assert!((b[0].target_chamfer_rel - 0.0055).abs() < 1e-12);
+        assert_eq!((b[0].seconds, b[0].ratio_to_first), (None, None));
+        assert_eq!((b[1].seconds, b[1].ratio_to_first, b[1].ratio_is_lower_bound), (Some(50.0), None, false));
+        // A fixed target (`--target-chamfer`) holds on every scene.
+        let fixed = time_to_accuracy(&points, &v, Some(0.0025));
+        assert!(fixed.iter().all(|r| r.target_chamfer_rel == 0.0025));
+        assert_eq!(fixed[0].seconds, Some(20.0));
+        assert_eq!(fixed[3].seconds, None);
+        let lines = describe_time_to_accuracy(&t, false);
+        assert_eq!(lines.len(), 2, "{lines:?}");
+        assert!(lines[0].contains("fast-classic-hull 40.0 s (2.00x)") && lines[0].contains("paper-refined-hull not within 900 s (> 45.0x)"), "{}", lines[0]);
+    }
 }
