@@ -153,15 +153,21 @@ fn nan_gradients_never_reach_parameters() {
     let before = (t.model().sdf_params.clone(), t.model().radiance_params.clone());
     let mut d_sdf = vec![0.1f32; before.0.len()];
     d_sdf[7] = f32::NAN;
-    let (applied, _) = t.apply(d_sdf, vec![0.0; before.1.len()], 1e-2, 1e-2).unwrap();
+    let (applied, _) = t.apply(Some(d_sdf), vec![0.0; before.1.len()], 1e-2, 1e-2).unwrap();
     assert!(!applied);
     assert_eq!(t.skipped, 1);
     assert_eq!(t.model().sdf_params, before.0);
     assert_eq!(t.model().radiance_params, before.1);
-    let (applied, _) = t.apply(vec![0.1; before.0.len()], vec![f32::INFINITY; before.1.len()], 1e-2, 1e-2).unwrap();
+    let (applied, _) = t.apply(Some(vec![0.1; before.0.len()]), vec![f32::INFINITY; before.1.len()], 1e-2, 1e-2).unwrap();
     assert!(!applied && t.skipped == 2 && t.model().sdf_params == before.0);
-    let (applied, _) = t.apply(vec![0.1; before.0.len()], vec![0.0; before.1.len()], 1e-2, 1e-2).unwrap();
+    let (applied, _) = t.apply(Some(vec![0.1; before.0.len()]), vec![0.0; before.1.len()], 1e-2, 1e-2).unwrap();
     assert!(applied && t.model().sdf_params != before.0);
+    // A radiance warm-up step (no SDF gradient) is checked the same way.
+    let held = (t.model().sdf_params.clone(), t.model().radiance_params.clone());
+    let (applied, _) = t.apply(None, vec![f32::NAN; before.1.len()], 1e-2, 1e-2).unwrap();
+    assert!(!applied && t.skipped == 3 && t.model().radiance_params == held.1);
+    let (applied, _) = t.apply(None, vec![0.1; before.1.len()], 1e-2, 1e-2).unwrap();
+    assert!(applied && t.model().sdf_params == held.0 && t.model().radiance_params != held.1);
 }
 
 fn lavapipe() -> Backend {
@@ -334,7 +340,7 @@ fn learn_a_silhouette_with(tracing: pii_bake::render::TraceConfig, volume: bool)
             loss_and_grad(&b, t.model(), &t.cfg.trace, &bt, &EIK, &ls, 0.5).unwrap()
         };
         assert!(g.stats.loss.is_finite(), "step {step}: {:?}", g.stats);
-        let (applied, _) = t.apply(g.d_sdf, g.d_radiance, 1e-2, 1e-2).unwrap();
+        let (applied, _) = t.apply(Some(g.d_sdf), g.d_radiance, 1e-2, 1e-2).unwrap();
         assert!(applied);
     }
     let wrong_after = eval(&t, &mut pii_bake::util::rng(99));
@@ -786,4 +792,50 @@ fn a_fit_that_diverges_starts_again_slower_and_one_that_never_lands_says_what_to
     let mut t = Trainer::new(Stage1Config { hull_fit_lr: 1e3, ..small_paper_config() }).unwrap();
     let e = t.fit_to_grid(&b, &grid, 40, |_, _| {}).unwrap_err().to_string();
     assert!(e.contains("hull_fit_lr") && e.matches("of voxels on the right side").count() == 3, "{e}");
+}
+
+#[test]
+fn radiance_warm_up_steps_hold_the_sdf_and_its_moments_and_train_the_radiance_net_as_a_full_step_would() {
+    // A warm-up step computes the colour term alone. On the cpu backend its radiance update is
+    // the full step's with the SDF's rate at 0 (the same batch, colour gradient and Adam); the
+    // SDF keeps its parameters and its Adam moments start when its training does. On lavapipe
+    // the device optimiser's warm-up steps do the same.
+    let scene = example_at_quarter();
+    let (views, _) = pii_bake::train::cli::train_views(&scene);
+    let data = TrainData::new(&views, 1.0).unwrap();
+    let config = |warmup: f32, lr_field: f32| {
+        let mut cfg = tiny_fast_config(&views);
+        cfg.rays = 64;
+        cfg.iterations = 4;
+        cfg.radiance_warmup = warmup;
+        cfg.lr_field = lr_field;
+        cfg
+    };
+    let cpu = Backend::cpu();
+    let run = |t: &mut Trainer, b: &Backend, steps: usize| (0..steps).map(|_| t.train_step(b, &data).unwrap()).collect::<Vec<_>>();
+    let mut warm = Trainer::new(config(0.5, 1e-3)).unwrap();
+    let mut full = Trainer::new(config(0.0, 0.0)).unwrap();
+    let sdf0 = warm.model().sdf_params.clone();
+    let (sw, sf) = (run(&mut warm, &cpu, 2), run(&mut full, &cpu, 2));
+    for (w, f) in sw.iter().zip(&sf) {
+        assert!(w.radiance_warmup && !f.radiance_warmup && w.applied && w.lr_field == 0.0, "{w:?}");
+        assert!(w.surface_rays > 0 && w.surface_rays == f.surface_rays, "{w:?} vs {f:?}");
+        assert!((w.rgb - f.rgb).abs() <= 1e-5 * f.rgb && w.loss == w.rgb && w.eikonal == 0.0 && w.mask == 0.0, "{w:?} vs {f:?}");
+        assert!(w.field_evaluations < f.field_evaluations, "{w:?} vs {f:?}");
+    }
+    assert_eq!(warm.model().sdf_params, sdf0, "the warm-up holds the SDF");
+    assert_eq!((warm.sdf_adam_steps(), full.sdf_adam_steps()), (0, 2), "the held SDF's moments are not touched");
+    pii_bake::testing::assert_close("radiance net after 2 warm-up steps vs full steps at SDF rate 0", &warm.model().radiance_params, &full.model().radiance_params, pii_bake::testing::Tolerance::new(1e-4, 1e-6));
+    let after = run(&mut warm, &cpu, 1);
+    assert!(!after[0].radiance_warmup && after[0].eikonal > 0.0 && warm.model().sdf_params != sdf0 && warm.sdf_adam_steps() == 1, "{:?}", after[0]);
+
+    let gpu = lavapipe();
+    let mut dev = Trainer::new(config(0.5, 1e-3)).unwrap();
+    let mut host = Trainer::new(config(0.5, 1e-3)).unwrap();
+    let (sd, sh) = (run(&mut dev, &gpu, 2), run(&mut host, &cpu, 2));
+    assert!(dev.host_is_stale(), "the device optimiser ran");
+    dev.sync_host().unwrap();
+    assert!(sd.iter().all(|s| s.radiance_warmup && s.applied) && (sd[1].rgb - sh[1].rgb).abs() <= 1e-3 * sh[1].rgb, "{sd:?} vs {sh:?}");
+    assert_eq!((dev.model().sdf_params == sdf0, dev.sdf_adam_steps()), (true, 0));
+    pii_bake::testing::assert_close("radiance net after 2 warm-up steps, device vs host", &dev.model().radiance_params, &host.model().radiance_params, pii_bake::testing::Tolerance::new(1e-3, 1e-5));
 }

@@ -573,7 +573,11 @@ pub fn train_stage1(
         pb.set_position(trainer.step);
         let smooth = if cfg.smoothness_weight > 0.0 { format!(" smooth {:.4}", s.smoothness) } else { String::new() };
         let photo = if cfg.photo_consistency > 0.0 { format!(" photo {:.4}", s.photo) } else { String::new() };
-        pb.set_message(format!("loss {:.4} (rgb {:.4} eik {:.4} mask {:.4}{smooth}{photo}) psnr {:.1} {:.2} it/s", s.loss, s.rgb, s.eikonal, s.mask, s.psnr, its));
+        if s.radiance_warmup {
+            pb.set_message(format!("loss {:.4} (rgb; radiance warm-up, the SDF held) psnr {:.1} {:.2} it/s", s.loss, s.psnr, its));
+        } else {
+            pb.set_message(format!("loss {:.4} (rgb {:.4} eik {:.4} mask {:.4}{smooth}{photo}) psnr {:.1} {:.2} it/s", s.loss, s.rgb, s.eikonal, s.mask, s.psnr, its));
+        }
         ctx.emit("progress", serde_json::json!({ "stage": "geometry", "iterations": cfg.iterations, "it_per_s": its, "skipped": trainer.skipped, "stats": s }));
         last = s;
         let interrupted = stop.load(Ordering::SeqCst);

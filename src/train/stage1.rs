@@ -204,7 +204,9 @@ pub struct Stage1Config {
     pub coarse_levels: f32,
     pub coarse_to_fine_end: f32,
     /// The SDF is held fixed for this fraction of the run while the radiance net learns the
-    /// colours (before that, colour gradients only move the surface at random).
+    /// colours (before that, colour gradients only move the surface at random). Those steps
+    /// compute the colour term alone (`radiance_loss_and_grad`): the SDF's Adam moments start
+    /// when its training does.
     pub radiance_warmup: f32,
     /// The radiance net's feature comes from its own hash grid (the SDF grid's sizes), trained at
     /// the radiance net's rate, instead of from the SDF network's feature output (IDR's, which the
@@ -1012,6 +1014,10 @@ pub struct StepStats {
     pub applied: bool,
     pub grad_norm: f64,
     pub field_evaluations: usize,
+    /// A step of the radiance warm-up ([`Stage1Config::radiance_warmup`]): the SDF held, the
+    /// colour term alone computed (`eikonal` and `mask` are 0: not part of the step's loss).
+    #[serde(default)]
+    pub radiance_warmup: bool,
 }
 
 /// The gradient of one step's loss (and its parts), before the optimiser.
@@ -1258,6 +1264,53 @@ fn loss_and_grad_tensors(
         ..Default::default()
     };
     Ok((stats, d_sdf, d_radiance))
+}
+
+/// The loss and the radiance net's gradient of one step of the radiance warm-up
+/// ([`Stage1Config::radiance_warmup`]): with the SDF held, only the colour term reaches a
+/// parameter that moves, so the step traces the batch, evaluates the field (value, numerical
+/// normal, feature) at the surface points alone and runs the radiance net forward and back.
+/// None of the SDF's backward, its mask and eikonal points, the colour ahead along the ray or
+/// the photo-consistency term is computed: they would only feed the SDF's gradient. The colour
+/// loss and its radiance gradient are [`loss_and_grad`]'s.
+fn radiance_loss_and_grad(backend: &Backend, model: &Model, trace_cfg: &TraceConfig, batch: &Batch) -> Result<(StepStats, RadianceGrad), BackendError> {
+    let nrays = batch.rays.len();
+    let sdf_fn = model.sdf_batch(backend)?;
+    let tr = trace(&sdf_fn, &batch.rays, trace_cfg)?;
+    let surf: Vec<usize> = (0..nrays).filter(|&i| tr.hit[i] && batch.mask[i] >= 0.5).collect();
+    let ns = surf.len();
+    let mut stats = StepStats { surface_rays: ns, mask_rays: nrays - ns, field_evaluations: tr.evaluations + 7 * ns, radiance_warmup: true, psnr: f64::NAN, ..Default::default() };
+    if ns == 0 {
+        return Ok((stats, model.zero_radiance_grad()));
+    }
+    let x0: Vec<[f32; 3]> = surf.iter().map(|&i| tr.points[i]).collect();
+    let dirs: Vec<[f32; 3]> = surf.iter().map(|&i| batch.rays.dirs[i]).collect();
+    let o = model.field.eval_with_gradient(backend, &model.sdf_params, bytemuck::cast_slice(&x0))?;
+    let rad_params = backend.upload(model.radiance_split().1);
+    let si = model.radiance_input(backend, &x0, &dirs, &o, 0..ns)?;
+    let fwd = backend.mlp_forward(&model.radiance, &rad_params, &backend.from_vec(si), true)?;
+    let c = backend.to_vec(&fwd.output)?;
+    let inv_b = 1.0 / nrays as f64;
+    let (mut l1, mut sq) = (0.0f64, 0.0f64);
+    let mut dc = vec![0f32; 3 * ns];
+    for k in 0..ns {
+        let gt = batch.rgb[surf[k]];
+        for ch in 0..3 {
+            let e = c[3 * k + ch] - gt[ch];
+            l1 += e.abs() as f64 * inv_b;
+            sq += (e * e) as f64;
+            dc[3 * k + ch] = if e > 0.0 { inv_b as f32 } else if e < 0.0 { -(inv_b as f32) } else { 0.0 };
+        }
+    }
+    // The field's output gradients it also returns are dropped: the SDF is held.
+    let fd = model.field.config.feature_dim;
+    let mut g = FieldOutputGrads { sdf: vec![0.0; ns], gradient: vec![0.0; 3 * ns], feature: vec![0.0; ns * fd] };
+    let d_radiance = model.radiance_backward(backend, &rad_params, &fwd, dc, &x0, 0.0, &mut g)?;
+    let mse = sq / (3 * ns) as f64;
+    stats.rgb = l1;
+    stats.loss = l1;
+    stats.psnr = if mse > 0.0 { -10.0 * mse.log10() } else { f64::NAN };
+    Ok((stats, d_radiance))
 }
 
 /// What the multi-view photo-consistency term needs beside the batch.
@@ -1589,6 +1642,12 @@ impl Trainer {
         Ok(self.model)
     }
 
+    /// The Adam steps applied to the SDF so far (the host copy's count: after training on wgpu
+    /// call [`Trainer::sync_host`] first).
+    pub fn sdf_adam_steps(&self) -> u64 {
+        self.adam_sdf.step
+    }
+
     /// Whether the newest parameters (the SDF's, the appearance grid's) are on the device only.
     pub fn host_is_stale(&self) -> bool {
         self.device.as_ref().is_some_and(|d| !d.host_current)
@@ -1670,16 +1729,20 @@ impl Trainer {
         AdamConfig { eps: 1e-15, grad_clip_norm: None, skip_zero_gradients: self.cfg.sparse_adam, ..AdamConfig::with_lr(self.cfg.lr_field) }
     }
 
-    /// Apply gradients (skipped and counted when any value is non-finite).
-    pub fn apply(&mut self, d_sdf: Vec<f32>, d_radiance: Vec<f32>, lr_field: f32, lr_radiance: f32) -> Result<(bool, f64), BackendError> {
+    /// Apply gradients (skipped and counted when any value is non-finite). No SDF gradient (a
+    /// radiance warm-up step): the SDF and its moments are left as they are.
+    pub fn apply(&mut self, d_sdf: Option<Vec<f32>>, d_radiance: Vec<f32>, lr_field: f32, lr_radiance: f32) -> Result<(bool, f64), BackendError> {
         // The host copies are updated: they become the only current ones.
         self.host_only()?;
-        let Some(norm) = host_grad_norm(&[&d_sdf, &d_radiance]) else {
+        let grads: Vec<&[f32]> = d_sdf.as_deref().into_iter().chain([&d_radiance[..]]).collect();
+        let Some(norm) = host_grad_norm(&grads) else {
             self.skipped += 1;
             return Ok((false, f64::NAN));
         };
         let cfg = self.adam();
-        adam_host(&cfg, &mut self.model.sdf_params, d_sdf, &mut self.adam_sdf, lr_field)?;
+        if let Some(d_sdf) = d_sdf {
+            adam_host(&cfg, &mut self.model.sdf_params, d_sdf, &mut self.adam_sdf, lr_field)?;
+        }
         adam_host(&cfg, &mut self.model.radiance_params, d_radiance, &mut self.adam_radiance, lr_radiance)?;
         Ok((true, norm))
     }
@@ -1736,14 +1799,21 @@ impl Trainer {
             Some((p, _)) if device => Some(self.model.pin_appearance(p.device()?)),
             _ => None,
         };
+        // The radiance warm-up holds the SDF: its steps compute the colour term alone.
+        let warm = (self.step as f32) < self.cfg.radiance_warmup * self.cfg.iterations as f32;
         let (stats, d_sdf, d_radiance) = match volume {
+            None if warm => {
+                let (st, d_radiance) = radiance_loss_and_grad(backend, &self.model, &self.cfg.trace, &batch)?;
+                (StepStats { alpha: ls.alpha, ..st }, None, d_radiance)
+            }
             None => {
                 let photo = self.multiview.as_ref().map(|mv| PhotoTerm {
                     data,
                     multiview: mv,
                     settings: super::multiview::PhotoConsistency { weight: photo_weight, best: super::multiview::BEST, depth_step: self.cfg.sizes.pixel_footprint },
                 });
-                loss_and_grad_tensors(backend, &self.model, &self.cfg.trace, &batch, &eik, &ls, jitter, photo)?
+                let (st, d_sdf, d_radiance) = loss_and_grad_tensors(backend, &self.model, &self.cfg.trace, &batch, &eik, &ls, jitter, photo)?;
+                (st, Some(d_sdf), d_radiance)
             }
             Some(sharpness) => {
                 let vs = VolumeSettings {
@@ -1754,12 +1824,12 @@ impl Trainer {
                     bound: b,
                 };
                 let vsm = volume_samples(backend, &self.model, &batch, &vs, jitter)?;
-                volume_loss_and_grad_tensors(backend, &self.model, &batch, &vsm, &eik, &ls, &vs)?
+                let (st, d_sdf, d_radiance) = volume_loss_and_grad_tensors(backend, &self.model, &batch, &vsm, &eik, &ls, &vs)?;
+                (st, Some(d_sdf), d_radiance)
             }
         };
         drop((pin, appearance_pin));
         let f = self.cfg.lr_factor(self.step);
-        let warm = (self.step as f32) < self.cfg.radiance_warmup * self.cfg.iterations as f32;
         let (lf, lr) = (if warm { 0.0 } else { self.cfg.lr_field * f }, self.cfg.lr_radiance * f);
         let (applied, norm) = if !stats.loss.is_finite() {
             self.skipped += 1;
@@ -1767,7 +1837,7 @@ impl Trainer {
         } else if device {
             self.apply_device(d_sdf, d_radiance, lf, lr)?
         } else {
-            self.apply(sdf_grad_to_host(backend, d_sdf)?, radiance_grad_to_host(backend, d_radiance)?, lf, lr)?
+            self.apply(d_sdf.map(|d| sdf_grad_to_host(backend, d)).transpose()?, radiance_grad_to_host(backend, d_radiance)?, lf, lr)?
         };
         self.step += 1;
         Ok(StepStats { step: self.step, applied, grad_norm: norm, lr_field: lf, ..stats })
@@ -1776,8 +1846,9 @@ impl Trainer {
     /// [`Trainer::apply`] with the SDF's and the appearance grid's gradients, parameters and
     /// moments on the device: one wait for the gradient's statistics (over every part, so a
     /// non-finite value anywhere skips the whole step), then Adam queued there and run on the
-    /// host for the rest of the radiance net.
-    fn apply_device(&mut self, d_sdf: [Tensor; 2], (d_grid, d_mlp): RadianceGrad, lr_field: f32, lr_radiance: f32) -> Result<(bool, f64), BackendError> {
+    /// host for the rest of the radiance net. No SDF gradient (a radiance warm-up step): the
+    /// SDF and its moments are left as they are.
+    fn apply_device(&mut self, d_sdf: Option<[Tensor; 2]>, (d_grid, d_mlp): RadianceGrad, lr_field: f32, lr_radiance: f32) -> Result<(bool, f64), BackendError> {
         let cfg = self.adam();
         let d = self.device.as_mut().ok_or_else(|| BackendError::Config("stage 1: no device copy of the SDF".into()))?;
         // The grid's gradient is on the device where the grid is (a step without surface rays
@@ -1787,13 +1858,15 @@ impl Trainer {
             (t @ Tensor::Device(_), Some(_)) => (Some(t), d_mlp),
             (t, None) => (None, radiance_grad_to_host(&d.backend, (t, d_mlp))?),
         };
-        let device_grads: Vec<&Tensor> = [&d_sdf[0], &d_sdf[1]].into_iter().chain(d_grid.as_ref()).collect();
+        let device_grads: Vec<&Tensor> = d_sdf.iter().flatten().chain(d_grid.as_ref()).collect();
         let Some(norm) = combined_norm(&d.backend, &device_grads, &[&d_host])? else {
             self.skipped += 1;
             return Ok((false, f64::NAN));
         };
         let DeviceParams { backend, params, adam: [a0, a1], appearance, appearance_len, radiance_adam, .. } = d;
-        adam_sdf_on_device(backend, &cfg, params, &d_sdf, [a0, a1], lr_field, norm)?;
+        if let Some(d_sdf) = &d_sdf {
+            adam_sdf_on_device(backend, &cfg, params, d_sdf, [a0, a1], lr_field, norm)?;
+        }
         if let (Some((p, a)), Some(g)) = (appearance.as_mut(), d_grid.as_ref()) {
             backend.adam_apply(&cfg, &mut [AdamItem { params: p, grads: g, state: a }], lr_radiance, norm)?;
         }
