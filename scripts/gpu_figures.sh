@@ -121,6 +121,10 @@ for name in ["wgpu", "wgpu_host_adam", "cpu", "wgpu_profile", "wgpu_profile_s2",
     r = load(runs / name / ("material_report.json" if name.endswith("_s2") else "train_report.json"))
     if r is not None:
         lines.append(run_line(name, r))
+tta = runs / "bench_train" / "bench-train-time-to-accuracy.csv"
+if tta.is_file():
+    lines.append("bench train, time to accuracy (each variant against the first):")
+    lines += ["  " + row for row in tta.read_text().splitlines()]
 (out / "summary.txt").write_text("\n".join(lines) + "\n")
 kernels = []
 for name in ["wgpu_profile", "wgpu_profile_s2"]:
