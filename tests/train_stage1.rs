@@ -808,6 +808,7 @@ fn radiance_warm_up_steps_hold_the_sdf_and_its_moments_and_train_the_radiance_ne
         cfg.rays = 64;
         cfg.iterations = 4;
         cfg.radiance_warmup = warmup;
+        cfg.warmup_priming_steps = 0;
         cfg.lr_field = lr_field;
         cfg
     };
@@ -828,6 +829,15 @@ fn radiance_warm_up_steps_hold_the_sdf_and_its_moments_and_train_the_radiance_ne
     pii_bake::testing::assert_close("radiance net after 2 warm-up steps vs full steps at SDF rate 0", &warm.model().radiance_params, &full.model().radiance_params, pii_bake::testing::Tolerance::new(1e-4, 1e-6));
     let after = run(&mut warm, &cpu, 1);
     assert!(!after[0].radiance_warmup && after[0].eikonal > 0.0 && warm.model().sdf_params != sdf0 && warm.sdf_adam_steps() == 1, "{:?}", after[0]);
+    // The last `warmup_priming_steps` of the warm-up are whole steps at the SDF's rate 0: they
+    // prime its moments and hold it.
+    let mut primed = Trainer::new(Stage1Config { warmup_priming_steps: 1, ..config(0.5, 1e-3) }).unwrap();
+    let sp = run(&mut primed, &cpu, 2);
+    assert!(sp[0].radiance_warmup && !sp[1].radiance_warmup && sp[1].lr_field == 0.0 && sp[1].eikonal > 0.0, "{sp:?}");
+    assert!(primed.model().sdf_params == sdf0 && primed.sdf_adam_steps() == 1);
+    // The presets: none after a hull fit, every warm-up step from a sphere.
+    let preset = |init| Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, init, &views, 0, 4).warmup_priming_steps;
+    assert_eq!((preset(InitMode::Hull), preset(InitMode::Sphere)), (0, u64::MAX));
 
     let gpu = lavapipe();
     let mut dev = Trainer::new(config(0.5, 1e-3)).unwrap();
