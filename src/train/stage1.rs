@@ -1032,8 +1032,9 @@ pub struct StepStats {
     pub applied: bool,
     pub grad_norm: f64,
     pub field_evaluations: usize,
-    /// A step of the radiance warm-up ([`Stage1Config::radiance_warmup`]): the SDF held, the
-    /// colour term alone computed (`eikonal` and `mask` are 0: not part of the step's loss).
+    /// A colour-only step of the radiance warm-up ([`Stage1Config::radiance_warmup`]): the SDF
+    /// held, the colour term alone computed (`eikonal` and `mask` are 0: not part of the step's
+    /// loss). The warm-up's priming steps are whole (`lr_field` 0) and not flagged.
     #[serde(default)]
     pub radiance_warmup: bool,
 }
