@@ -145,9 +145,6 @@ pub fn time_to_accuracy(points: &[CurvePoint], variants: &[String], targets: &[f
     }
     let mut out = Vec::new();
     for scene in scenes {
-        fn measured<'a>(points: &'a [CurvePoint], scene: &'a str, v: &'a str) -> impl Iterator<Item = &'a CurvePoint> + 'a {
-            points.iter().filter(move |p| p.scene == scene && p.variant == v && p.chamfer_rel.is_finite())
-        }
         let curve = |v| measured(points, scene, v);
         let best = variants.iter().flat_map(|v| curve(v)).map(|p| p.chamfer_rel).fold(f64::INFINITY, f64::min);
         if !best.is_finite() {
@@ -187,6 +184,11 @@ pub fn time_to_accuracy(points: &[CurvePoint], variants: &[String], targets: &[f
         }
     }
     out
+}
+
+/// The measurements of `variant` on `scene`, in the order taken (a NaN point is not one).
+fn measured<'a>(points: &'a [CurvePoint], scene: &'a str, variant: &'a str) -> impl Iterator<Item = &'a CurvePoint> + 'a {
+    points.iter().filter(move |p| p.scene == scene && p.variant == variant && p.chamfer_rel.is_finite())
 }
 
 /// Where a curve (its measurements in the order taken) first gets to `target`: the crossing's wall
@@ -492,7 +494,7 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
                     last = record(&tr, wall, &mut points);
                 }
                 // Half the hull's Chamfer, crossed as `time_to_accuracy` reads a crossing.
-                let reached = crossing(points.iter().filter(|p| p.scene == sname && p.variant == *name && p.chamfer_rel.is_finite()), target).map(|(t, _)| t);
+                let reached = crossing(measured(&points, &sname, name), target).map(|(t, _)| t);
                 let held_views: Vec<&View> = if held.is_empty() { views.iter().take(4).copied().collect() } else { held.iter().take(8).copied().collect() };
                 let ev = evaluate_views(&backend, tr.model(), &cfg.trace, &held_views, 128 * 128)?;
                 let shipped = super::cli::trained_mesh_config(&cfg.sizes, None, None);

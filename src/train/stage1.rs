@@ -1209,19 +1209,15 @@ fn loss_and_grad_tensors(
                 let si = model.radiance_input(backend, &x0, &dirs, o, 0..ns)?;
                 let fwd = backend.mlp_forward(&model.radiance, &rad_params, &backend.from_vec(si), true)?;
                 let c = backend.to_vec(&fwd.output)?;
-                let mut dc = vec![0f32; 3 * ns];
+                let (l1, sq, dc) = colour_l1(&c, batch, &surf, inv_b);
+                parts.0 += l1;
+                parts.3 += sq;
                 for k in 0..ns {
-                    let gt = batch.rgb[surf[k]];
                     let gdotv = gdotv[k];
                     let mut s_term = 0.0f32;
-                    for ch in 0..3 {
-                        let e = c[3 * k + ch] - gt[ch];
-                        parts.0 += e.abs() as f64 * inv_b;
-                        parts.3 += (e * e) as f64;
-                        let dl = if e > 0.0 { inv_b as f32 } else if e < 0.0 { -(inv_b as f32) } else { 0.0 };
-                        dc[3 * k + ch] = dl;
-                        if let Some(ca) = c_ahead.get(k) {
-                            s_term += dl * (ca[ch] - c[3 * k + ch]) / RAY_EPS;
+                    if let Some(ca) = c_ahead.get(k) {
+                        for ch in 0..3 {
+                            s_term += dc[3 * k + ch] * (ca[ch] - c[3 * k + ch]) / RAY_EPS;
                         }
                     }
                     // Implicit differentiation: dx/df(x0) = −v/(∇f·v). Grazing or back-facing
@@ -1285,6 +1281,24 @@ fn loss_and_grad_tensors(
     Ok((stats, d_sdf, d_radiance))
 }
 
+/// The L1 colour term of the surface rays `surf` of `batch`, whose colours are `c` `[n, 3]`,
+/// weighted `inv_b` (one over the batch's rays): the loss, the squared error summed (for the
+/// PSNR) and the loss's gradient in `c`.
+fn colour_l1(c: &[f32], batch: &Batch, surf: &[usize], inv_b: f64) -> (f64, f64, Vec<f32>) {
+    let (mut l1, mut sq) = (0.0f64, 0.0f64);
+    let mut dc = vec![0f32; 3 * surf.len()];
+    for (k, &i) in surf.iter().enumerate() {
+        let gt = batch.rgb[i];
+        for ch in 0..3 {
+            let e = c[3 * k + ch] - gt[ch];
+            l1 += e.abs() as f64 * inv_b;
+            sq += (e * e) as f64;
+            dc[3 * k + ch] = if e > 0.0 { inv_b as f32 } else if e < 0.0 { -(inv_b as f32) } else { 0.0 };
+        }
+    }
+    (l1, sq, dc)
+}
+
 /// The loss and the radiance net's gradient of one step of the radiance warm-up
 /// ([`Stage1Config::radiance_warmup`]): with the SDF held, only the colour term reaches a
 /// parameter that moves, so the step traces the batch, evaluates the field (value, numerical
@@ -1309,18 +1323,7 @@ fn radiance_loss_and_grad(backend: &Backend, model: &Model, trace_cfg: &TraceCon
     let si = model.radiance_input(backend, &x0, &dirs, &o, 0..ns)?;
     let fwd = backend.mlp_forward(&model.radiance, &rad_params, &backend.from_vec(si), true)?;
     let c = backend.to_vec(&fwd.output)?;
-    let inv_b = 1.0 / nrays as f64;
-    let (mut l1, mut sq) = (0.0f64, 0.0f64);
-    let mut dc = vec![0f32; 3 * ns];
-    for k in 0..ns {
-        let gt = batch.rgb[surf[k]];
-        for ch in 0..3 {
-            let e = c[3 * k + ch] - gt[ch];
-            l1 += e.abs() as f64 * inv_b;
-            sq += (e * e) as f64;
-            dc[3 * k + ch] = if e > 0.0 { inv_b as f32 } else if e < 0.0 { -(inv_b as f32) } else { 0.0 };
-        }
-    }
+    let (l1, sq, dc) = colour_l1(&c, batch, &surf, 1.0 / nrays as f64);
     // The field's output gradients it also returns are dropped: the SDF is held.
     let fd = model.field.config.feature_dim;
     let mut g = FieldOutputGrads { sdf: vec![0.0; ns], gradient: vec![0.0; 3 * ns], feature: vec![0.0; ns * fd] };
@@ -1820,8 +1823,8 @@ impl Trainer {
         };
         // The radiance warm-up holds the SDF: its steps compute the colour term alone, but for
         // the last few, which prime the SDF's moments.
-        let warm = (self.step as f32) < self.cfg.radiance_warmup * self.cfg.iterations as f32;
         let warm_end = (self.cfg.radiance_warmup * self.cfg.iterations as f32).ceil() as u64;
+        let warm = self.step < warm_end;
         let colour_only = warm && self.step.saturating_add(self.cfg.warmup_priming_steps) < warm_end;
         let (stats, d_sdf, d_radiance) = match volume {
             None if colour_only => {
