@@ -616,7 +616,17 @@ pub fn train_stage1(
     // bake or `--stage all` hands it to stage 2: `Model::share_sdf_grid`).
     let t_cov = Instant::now();
     let (grid, _) = trainer.model().sdf_grid(backend, super::material::secondary_grid_nodes(&cfg.sizes))?;
-    let cameras: Vec<&crate::scene::Camera> = views.iter().map(|v| &v.camera).collect();
+    // The cameras as refined where the run refines them (written beside the checkpoint for
+    // stage 2), else as read.
+    let refined: Vec<crate::scene::Camera> = match trainer.poses() {
+        Some(p) => views.iter().enumerate().map(|(v, view)| p.camera(&view.camera, v)).collect(),
+        None => views.iter().map(|v| v.camera.clone()).collect(),
+    };
+    let pose_report = match trainer.poses() {
+        Some(p) => Some(super::pose::write_poses(run_dir, p, &views, &refined, cfg.sizes.pixel_footprint, &Trainer::view_distances(&data))?),
+        None => None,
+    };
+    let cameras: Vec<&crate::scene::Camera> = refined.iter().collect();
     let coverage = super::coverage::surface_coverage(&grid, &cameras)?;
     let mut flags: Vec<String> = Vec::new();
     if ev.mask_iou < 0.8 {
@@ -652,6 +662,7 @@ pub fn train_stage1(
         "training_thread_cpu_seconds_per_step": per_step.thread_cpu_seconds,
         "hull_init": hull_report,
         "mesh_init": mesh_report,
+        "pose_refinement": pose_report,
         "eval": { "views": if held.is_empty() { "training views (the scene has no held-out split)" } else { "held-out views" }, "psnr_pixels": HELD_OUT_PSNR_PIXELS, "psnr": ev.psnr, "mask_iou": ev.mask_iou, "per_view": ev.per_view, "seconds": t_eval.elapsed().as_secs_f64() },
         "coverage": coverage.to_json(t_cov.elapsed().as_secs_f64()),
         "flags": flags,
@@ -672,6 +683,12 @@ pub fn train_stage1(
         ev.mask_iou,
         if weak { format!(" — WEAK RESULT: {}", flags.join("; ")) } else { String::new() }
     ));
+    if let Some(p) = &pose_report {
+        ctx.say(format!(
+            "stage 1: camera poses refined ({} views): mean correction {:.3}° and {:.2} px of shift (max {:.3}° / {:.2} px), in {}",
+            p["views"], p["mean_rotation_deg"].as_f64().unwrap_or(0.0), p["mean_translation_px"].as_f64().unwrap_or(0.0), p["max_rotation_deg"].as_f64().unwrap_or(0.0), p["max_translation_px"].as_f64().unwrap_or(0.0), super::pose::POSES
+        ));
+    }
     ctx.say(format!(
         "stage 1: surface seen by 0 / 1 / 2 / 3+ training photos: {:.0}% / {:.0}% / {:.0}% / {:.0}% (median {})",
         100.0 * coverage.seen_by[0],

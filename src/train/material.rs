@@ -431,7 +431,12 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     crate::export::check_writable(run_dir)?;
     let s1 = load_stage1(run_dir, None)?;
     let downscale = s1.trainer.cfg.downscale.max(1);
-    let scene = crate::scene::load(scene_path, &ReadOptions { downscale: Downscale::By(downscale), keep_all_views: s1.trainer.cfg.keep_all_views })?;
+    let mut scene = crate::scene::load(scene_path, &ReadOptions { downscale: Downscale::By(downscale), keep_all_views: s1.trainer.cfg.keep_all_views })?;
+    // The training views' poses as stage 1 refined them, where it did.
+    let refined = super::pose::apply_run_poses(run_dir, &mut scene.views)?;
+    if refined > 0 {
+        ctx.say(format!("stage 2: training through the {refined} camera poses stage 1 refined ({})", super::pose::POSES));
+    }
     let (views, held) = train_views(&scene);
     let key = scene_key(&scene, &views);
     if key != s1.run_scene.key {

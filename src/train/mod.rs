@@ -9,6 +9,7 @@ pub mod hull;
 pub mod material;
 pub mod multiview;
 pub mod photo;
+pub mod pose;
 pub mod preview;
 pub mod relight;
 pub mod stage1;

@@ -80,6 +80,15 @@ impl MultiView {
         Self { camera_from_world: data.views.iter().map(|v| v.camera.world_from_camera.inverse()).collect(), centres, neighbours, images }
     }
 
+    /// Project through these poses (camera → world, one per view) from here on: the pose
+    /// refinement's corrected cameras. The neighbours stay those of the poses as read.
+    pub fn set_poses(&mut self, world_from_camera: &[DMat4]) {
+        for (v, m) in world_from_camera.iter().enumerate().take(self.camera_from_world.len()) {
+            self.camera_from_world[v] = m.inverse();
+            self.centres[v] = m.w_axis.truncate().as_vec3().to_array();
+        }
+    }
+
     fn project(&self, data: &TrainData, v: usize, p: [f32; 3]) -> Option<[f32; 2]> {
         let q = data.views[v].camera.project_camera_point(self.camera_from_world[v].transform_point3(DVec3::from(p.map(f64::from))))?;
         Some([q.x as f32, q.y as f32])

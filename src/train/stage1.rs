@@ -254,6 +254,11 @@ pub struct Stage1Config {
     /// host copy (an encoding that runs on the host), the host path is used whatever this says.
     #[serde(default = "yes")]
     pub device_optimiser: bool,
+    /// Camera pose refinement ([`super::pose`]): each training view's pose is corrected with
+    /// the SDF, at this Adam rate in pixels at the object per step (decaying with the run's
+    /// rate), from the SDF's first trained step. 0: the poses as read (run files without it).
+    #[serde(default)]
+    pub pose_lr: f32,
     pub seed: u64,
     pub checkpoint_every: u64,
     pub downscale: usize,
@@ -430,6 +435,8 @@ impl Stage1Config {
             // Ethiopian head 7.1 -> 9.1 it/s, a 1600² capture read at 1/2 4.1 -> 5.3 it/s.
             sparse_adam: true,
             device_optimiser: true,
+            // Pose refinement: measured below before it is made the default.
+            pose_lr: 0.0,
             seed: 0,
             // About 14 s of this 2-core box's training between checkpoints (50 steps of 4096 rays).
             checkpoint_every: 50,
@@ -948,6 +955,7 @@ impl Model {
         x: &[[f32; 3]],
         normal_scale: f32,
         g: &mut FieldOutputGrads,
+        d_view: Option<&mut Vec<f32>>,
     ) -> Result<RadianceGrad, BackendError> {
         let ns = x.len();
         let fd = self.field.config.feature_dim;
@@ -957,6 +965,9 @@ impl Model {
         let rfd = self.radiance_split_dims().0;
         let vd = id - 6 - rfd;
         let mut d_feat = vec![0f32; if self.appearance.is_some() { ns * rfd } else { 0 }];
+        if let Some(dv) = d_view {
+            *dv = (0..ns).flat_map(|k| din[k * id + 3..k * id + 3 + vd].iter().copied()).collect();
+        }
         for k in 0..ns {
             let row = &din[k * id..(k + 1) * id];
             if normal_scale != 0.0 {
@@ -1085,8 +1096,49 @@ pub fn loss_and_grad(
     ls: &LossSettings,
     jitter: f32,
 ) -> Result<StepGrad, BackendError> {
-    let (stats, d_sdf, d_radiance) = loss_and_grad_tensors(backend, model, trace_cfg, batch, eik_points, ls, jitter, None)?;
+    let (stats, d_sdf, d_radiance) = loss_and_grad_tensors(backend, model, trace_cfg, batch, eik_points, ls, jitter, None, None)?;
     Ok(StepGrad { stats, d_sdf: sdf_grad_to_host(backend, d_sdf)?, d_radiance: radiance_grad_to_host(backend, d_radiance)? })
+}
+
+/// The gradient of a step's loss in each ray's origin and direction (pose refinement,
+/// [`super::pose`]): zero for a ray whose terms do not depend on it. The colour's gradient in
+/// the surface point is a forward difference of the whole forward along the ray and two
+/// directions across it ([`RAY_EPS`]), pushed through the implicit surface point
+/// (`∂x/∂o = I − v∇fᵀ/(∇f·v)`, `∂x/∂v = t·∂x/∂o`, gated at grazing hits as the SDF's is) plus the
+/// radiance net's view input; the mask term's through its point at its distance along the ray.
+/// The photo-consistency term contributes nothing.
+#[derive(Clone, Debug, Default)]
+pub struct RayGrads {
+    pub origin: Vec<[f32; 3]>,
+    pub dir: Vec<[f32; 3]>,
+}
+
+impl RayGrads {
+    fn zeros(n: usize) -> Self {
+        Self { origin: vec![[0.0; 3]; n], dir: vec![[0.0; 3]; n] }
+    }
+}
+
+/// [`loss_and_grad`] and the loss's gradient in each ray ([`RayGrads`]).
+pub fn loss_and_ray_grads(
+    backend: &Backend,
+    model: &Model,
+    trace_cfg: &TraceConfig,
+    batch: &Batch,
+    eik_points: &[[f32; 3]],
+    ls: &LossSettings,
+    jitter: f32,
+) -> Result<(StepGrad, RayGrads), BackendError> {
+    let mut rg = RayGrads::default();
+    let (stats, d_sdf, d_radiance) = loss_and_grad_tensors(backend, model, trace_cfg, batch, eik_points, ls, jitter, None, Some(&mut rg))?;
+    Ok((StepGrad { stats, d_sdf: sdf_grad_to_host(backend, d_sdf)?, d_radiance: radiance_grad_to_host(backend, d_radiance)? }, rg))
+}
+
+/// Two unit vectors across the unit vector `d`.
+fn across(d: [f32; 3]) -> [[f32; 3]; 2] {
+    let d = glam::Vec3::from(d);
+    let a = d.any_orthonormal_pair();
+    [a.0.to_array(), a.1.to_array()]
 }
 
 /// The SDF's parameter gradient as one host vector (one wait for both halves on wgpu).
@@ -1129,8 +1181,12 @@ fn loss_and_grad_tensors(
     ls: &LossSettings,
     jitter: f32,
     photo: Option<PhotoTerm<'_>>,
+    mut ray_grads: Option<&mut RayGrads>,
 ) -> Result<StepGradTensors, BackendError> {
     let nrays = batch.rays.len();
+    if let Some(rg) = ray_grads.as_deref_mut() {
+        *rg = RayGrads::zeros(nrays);
+    }
     let sdf_fn = model.sdf_batch(backend)?;
     let tr = trace(&sdf_fn, &batch.rays, trace_cfg)?;
     let mut evals = tr.evaluations;
@@ -1166,13 +1222,23 @@ fn loss_and_grad_tensors(
     // `(c(x0 + ε v) − c(x0))/ε`, its `c(x0)` the colour the loss below computes anyway.
     let x0: Vec<[f32; 3]> = surf.iter().map(|&i| tr.points[i]).collect();
     let dirs: Vec<[f32; 3]> = surf.iter().map(|&i| batch.rays.dirs[i]).collect();
-    let c_ahead: Vec<[f32; 3]> = if x0.is_empty() || !ls.colour_moves_point {
+    let c_ahead: Vec<[f32; 3]> = if x0.is_empty() || !(ls.colour_moves_point || ray_grads.is_some()) {
         Vec::new()
     } else {
         let ahead: Vec<[f32; 3]> = x0.iter().zip(&dirs).map(|(p, d)| [0, 1, 2].map(|a| p[a] + RAY_EPS * d[a])).collect();
         evals += 7 * ahead.len();
         model.colour(backend, &ahead, &dirs)?
     };
+    // For the rays' gradients, the colour a step across the ray in two directions.
+    let across_dirs: Vec<[[f32; 3]; 2]> = if ray_grads.is_some() { dirs.iter().map(|&d| across(d)).collect() } else { Vec::new() };
+    let mut c_across: [Vec<[f32; 3]>; 2] = [Vec::new(), Vec::new()];
+    if ray_grads.is_some() && !x0.is_empty() {
+        for (j, c) in c_across.iter_mut().enumerate() {
+            let p: Vec<[f32; 3]> = x0.iter().zip(&across_dirs).map(|(p, u)| [0, 1, 2].map(|a| p[a] + RAY_EPS * u[j][a])).collect();
+            evals += 7 * p.len();
+            *c = model.colour(backend, &p, &dirs)?;
+        }
+    }
 
     // Eikonal points: the caller's uniform ones, plus one jittered around each surface point
     // (keeps the fine levels of a hash grid smooth where the surface is).
@@ -1212,21 +1278,47 @@ fn loss_and_grad_tensors(
                 let (l1, sq, dc) = colour_l1(&c, batch, &surf, inv_b);
                 parts.0 += l1;
                 parts.3 += sq;
+                // Directional derivative of the loss in the point along `u`, from the colour
+                // a step along it.
+                let slope = |k: usize, cu: &[f32; 3]| (0..3).map(|ch| dc[3 * k + ch] * (cu[ch] - c[3 * k + ch]) / RAY_EPS).sum::<f32>();
                 for k in 0..ns {
                     let gdotv = gdotv[k];
-                    let mut s_term = 0.0f32;
-                    if let Some(ca) = c_ahead.get(k) {
-                        for ch in 0..3 {
-                            s_term += dc[3 * k + ch] * (ca[ch] - c[3 * k + ch]) / RAY_EPS;
-                        }
-                    }
+                    let s_term = c_ahead.get(k).map_or(0.0, |ca| slope(k, ca));
                     // Implicit differentiation: dx/df(x0) = −v/(∇f·v). Grazing or back-facing
                     // hits (∇f·v ≥ −grazing_cos) pass no gradient through the point.
                     if ls.colour_moves_point && gdotv < -ls.grazing_cos {
                         g.sdf[k] += -s_term / gdotv;
                     }
+                    if let Some(rg) = ray_grads.as_deref_mut() {
+                        if gdotv < -ls.grazing_cos {
+                            // ∂L/∂x, then ∂L/∂o = (I − v∇fᵀ/(∇f·v))ᵀ ∂L/∂x, ∂L/∂v = t ∂L/∂o.
+                            let (u, d) = (&across_dirs[k], dirs[k]);
+                            let (a1, a2) = (slope(k, &c_across[0][k]), slope(k, &c_across[1][k]));
+                            let i = surf[k];
+                            let o_i = batch.rays.origins[i];
+                            let t: f32 = (0..3).map(|a| (x0[k][a] - o_i[a]) * d[a]).sum();
+                            for a in 0..3 {
+                                let gx = s_term * d[a] + a1 * u[0][a] + a2 * u[1][a];
+                                let go = gx - o.gradient[3 * k + a] * s_term / gdotv;
+                                rg.origin[i][a] += go;
+                                rg.dir[i][a] += t * go;
+                            }
+                        }
+                    }
                 }
-                model.radiance_backward(backend, &rad_params, &fwd, dc, &x0, ls.normal_gradient_scale, &mut g).map(Some)
+                let mut d_view = ray_grads.is_some().then(Vec::new);
+                let r = model.radiance_backward(backend, &rad_params, &fwd, dc, &x0, ls.normal_gradient_scale, &mut g, d_view.as_mut())?;
+                if let (Some(rg), Some(dv)) = (ray_grads.as_deref_mut(), d_view) {
+                    // The view input is −v.
+                    let view: Vec<f32> = dirs.iter().flat_map(|d| [-d[0], -d[1], -d[2]]).collect();
+                    let dx = crate::nn::encoding::encoding_backward_cpu(&model.view_encoding, &[], &view, 3, &dv, true).1.unwrap_or_default();
+                    for (k, &i) in surf.iter().enumerate() {
+                        for a in 0..3 {
+                            rg.dir[i][a] -= dx.get(3 * k + a).copied().unwrap_or(0.0);
+                        }
+                    }
+                }
+                Ok(Some(r))
             })();
             d_radiance = r;
         }
@@ -1240,7 +1332,21 @@ fn loss_and_grad_tensors(
             let w = ls.mask_weight as f64 / alpha * inv_b;
             parts.2 += w * bce;
             let sig = 1.0 / (1.0 + (-z).exp());
-            g.sdf[i] += (w * (sig - m) * -alpha) as f32;
+            let gs = (w * (sig - m) * -alpha) as f32;
+            g.sdf[i] += gs;
+            if let Some(rg) = ray_grads.as_deref_mut() {
+                // The point moves with the ray's line (its samples are placed on the line, not
+                // from the origin): ∂f/∂o = ∇f across the ray, ∂f/∂v = t times that.
+                let r = mask_rays[k];
+                let (o_r, d_r) = (batch.rays.origins[r], batch.rays.dirs[r]);
+                let t: f32 = (0..3).map(|a| (x_min[k][a] - o_r[a]) * d_r[a]).sum();
+                let along: f32 = (0..3).map(|a| o.gradient[3 * i + a] * d_r[a]).sum();
+                for a in 0..3 {
+                    let gf = gs * (o.gradient[3 * i + a] - along * d_r[a]);
+                    rg.origin[r][a] += gf;
+                    rg.dir[r][a] += t * gf;
+                }
+            }
         }
         // Eikonal at surface and uniform points.
         let eik_idx: Vec<usize> = (0..if ls.surface_eikonal { ns } else { 0 }).chain(ns + nm..n).collect();
@@ -1327,7 +1433,7 @@ fn radiance_loss_and_grad(backend: &Backend, model: &Model, trace_cfg: &TraceCon
     // The field's output gradients it also returns are dropped: the SDF is held.
     let fd = model.field.config.feature_dim;
     let mut g = FieldOutputGrads { sdf: vec![0.0; ns], gradient: vec![0.0; 3 * ns], feature: vec![0.0; ns * fd] };
-    let d_radiance = model.radiance_backward(backend, &rad_params, &fwd, dc, &x0, 0.0, &mut g)?;
+    let d_radiance = model.radiance_backward(backend, &rad_params, &fwd, dc, &x0, 0.0, &mut g, None)?;
     let mse = sq / (3 * ns) as f64;
     stats.rgb = l1;
     stats.loss = l1;
@@ -1492,7 +1598,7 @@ fn volume_loss_and_grad_tensors(
                         }
                     }
                 }
-                model.radiance_backward(backend, &rad_params, &fwd, dc, x, ls.normal_gradient_scale, &mut g).map(Some)
+                model.radiance_backward(backend, &rad_params, &fwd, dc, x, ls.normal_gradient_scale, &mut g, None).map(Some)
             })();
             d_radiance = r;
         }
@@ -1572,6 +1678,8 @@ pub struct Trainer {
     multiview: Option<super::multiview::MultiView>,
     /// The starting rate of the last [`Trainer::fit_to_grid`] that landed (None before any).
     pub fit_rate: Option<f32>,
+    /// The training views' pose corrections ([`Stage1Config::pose_lr`] above 0).
+    poses: Option<super::pose::PoseRefinement>,
 }
 
 /// The parameters and Adam moments a wgpu run keeps on the device
@@ -1635,7 +1743,7 @@ impl Trainer {
         let host = Backend::cpu();
         let adam_sdf = AdamState::new(&host, model.sdf_params.len());
         let adam_radiance = AdamState::new(&host, model.radiance_params.len());
-        Ok(Self { cfg, model, adam_sdf, adam_radiance, step: 0, skipped: 0, host, device: None, multiview: None, fit_rate: None })
+        Ok(Self { cfg, model, adam_sdf, adam_radiance, step: 0, skipped: 0, host, device: None, multiview: None, fit_rate: None, poses: None })
     }
 
     /// The model. Its grids' parameters are the host copy: after training on wgpu call
@@ -1769,6 +1877,34 @@ impl Trainer {
         Ok((true, norm))
     }
 
+    /// The training views' pose corrections, where the run refines them
+    /// ([`Stage1Config::pose_lr`]; None before its first step).
+    pub fn poses(&self) -> Option<&super::pose::PoseRefinement> {
+        self.poses.as_ref()
+    }
+
+    /// The pose corrections for `data`'s views, made where the run refines poses and has none
+    /// yet; an error where they were saved for another number of views.
+    fn poses_for(&mut self, data: &TrainData) -> Result<Option<&super::pose::PoseRefinement>, BackendError> {
+        if self.cfg.pose_lr <= 0.0 || data.views.len() < 2 {
+            return Ok(None);
+        }
+        let n = data.views.len();
+        match &self.poses {
+            Some(p) if p.views() != n => {
+                return Err(BackendError::Config(format!("stage 1: the run's pose refinement holds {} views, the scene {n}", p.views())));
+            }
+            Some(_) => {}
+            None => self.poses = Some(super::pose::PoseRefinement::new(&self.host, n)),
+        }
+        Ok(self.poses.as_ref())
+    }
+
+    /// Each training view's distance to the object's centre (the rotation's pixel scale).
+    pub fn view_distances(data: &TrainData) -> Vec<f32> {
+        data.views.iter().map(|v| v.camera.center().length() as f32).collect()
+    }
+
     /// The rng of step `step` (independent of how the run was split into sessions).
     pub fn step_rng(&self, step: u64) -> rand::rngs::StdRng {
         crate::util::rng(self.cfg.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15).wrapping_add(step))
@@ -1784,7 +1920,14 @@ impl Trainer {
             (Some(_), n) if n > 0 => n,
             _ => self.cfg.rays,
         };
-        let batch = data.sample(&mut rng, nrays, self.cfg.foreground_fraction);
+        let mut batch = data.sample(&mut rng, nrays, self.cfg.foreground_fraction);
+        let refine_poses = match self.poses_for(data)? {
+            Some(p) => {
+                p.apply(&mut batch);
+                true
+            }
+            None => false,
+        };
         // The term's cameras and filtered photos while its weight is above zero; dropped once it
         // has faded out (the rest of the run computes nothing for it).
         let photo_weight = self.cfg.photo_consistency_at(self.step);
@@ -1792,6 +1935,10 @@ impl Trainer {
             self.multiview = None;
         } else if self.multiview.is_none() {
             self.multiview = Some(super::multiview::MultiView::new(data));
+        }
+        if let (Some(mv), Some(p)) = (self.multiview.as_mut(), self.poses.as_ref().filter(|p| p.steps > 0)) {
+            let poses: Vec<glam::DMat4> = data.views.iter().enumerate().map(|(v, tv)| p.camera(&tv.camera, v).world_from_camera).collect();
+            mv.set_poses(&poses);
         }
         let b = self.cfg.trace.bound;
         let eik: Vec<[f32; 3]> = (0..self.cfg.eikonal_points)
@@ -1826,6 +1973,7 @@ impl Trainer {
         let warm_end = (self.cfg.radiance_warmup * self.cfg.iterations as f32).ceil() as u64;
         let warm = self.step < warm_end;
         let colour_only = warm && self.step.saturating_add(self.cfg.warmup_priming_steps) < warm_end;
+        let mut ray_grads: Option<RayGrads> = None;
         let (stats, d_sdf, d_radiance) = match volume {
             None if colour_only => {
                 let (st, d_radiance) = radiance_loss_and_grad(backend, &self.model, &self.cfg.trace, &batch)?;
@@ -1837,7 +1985,10 @@ impl Trainer {
                     multiview: mv,
                     settings: super::multiview::PhotoConsistency { weight: photo_weight, best: super::multiview::BEST, depth_step: self.cfg.sizes.pixel_footprint },
                 });
-                let (st, d_sdf, d_radiance) = loss_and_grad_tensors(backend, &self.model, &self.cfg.trace, &batch, &eik, &ls, jitter, photo)?;
+                let rg = (refine_poses && !warm).then(RayGrads::default);
+                let mut rg = rg;
+                let (st, d_sdf, d_radiance) = loss_and_grad_tensors(backend, &self.model, &self.cfg.trace, &batch, &eik, &ls, jitter, photo, rg.as_mut())?;
+                ray_grads = rg;
                 (st, Some(d_sdf), d_radiance)
             }
             Some(sharpness) => {
@@ -1856,7 +2007,12 @@ impl Trainer {
         drop((pin, appearance_pin));
         let f = self.cfg.lr_factor(self.step);
         let (lf, lr) = (if warm { 0.0 } else { self.cfg.lr_field * f }, self.cfg.lr_radiance * f);
-        let (applied, norm) = if !stats.loss.is_finite() {
+        // The views' pose gradient, checked with the rest: a non-finite value skips the step.
+        let pose_grad = match (&ray_grads, &self.poses) {
+            (Some(rg), Some(p)) => Some(p.view_gradient(&batch, rg)),
+            _ => None,
+        };
+        let (applied, norm) = if !stats.loss.is_finite() || matches!(pose_grad, Some(None)) {
             self.skipped += 1;
             (false, f64::NAN)
         } else if device {
@@ -1864,6 +2020,9 @@ impl Trainer {
         } else {
             self.apply(d_sdf.map(|d| sdf_grad_to_host(backend, d)).transpose()?, radiance_grad_to_host(backend, d_radiance)?, lf, lr)?
         };
+        if let (true, Some(Some(g)), Some(p)) = (applied, pose_grad, self.poses.as_mut()) {
+            p.step(&g, self.cfg.pose_lr * f, self.cfg.sizes.pixel_footprint, &Self::view_distances(data))?;
+        }
         self.step += 1;
         Ok(StepStats { step: self.step, applied, grad_norm: norm, lr_field: lf, ..stats })
     }
@@ -2080,6 +2239,9 @@ impl Trainer {
         st.set_step(self.step);
         st.metadata.insert("scene".into(), scene_key.to_string());
         st.metadata.insert("skipped".into(), self.skipped.to_string());
+        if let Some(p) = &self.poses {
+            p.save(&self.host, &mut st).map_err(err)?;
+        }
         st.save(&dir.join(CHECKPOINT))?;
         let cfg = serde_json::json!({ "stage": "geometry", "step": self.step, "scene": scene_key, "config": self.cfg });
         crate::util::atomic_write(&dir.join(RUN_CONFIG), serde_json::to_string_pretty(&cfg).unwrap_or_default().as_bytes())
@@ -2117,6 +2279,7 @@ impl Trainer {
         let levels = t.cfg.active_levels_at(t.step);
         t.model.field.encoder.set_active_levels(levels);
         t.skipped = st.metadata.get("skipped").and_then(|s| s.parse().ok()).unwrap_or(0);
+        t.poses = super::pose::PoseRefinement::load(&host, &st).map_err(|e| DataError::new(&path, e))?;
         Ok((t, scene))
     }
 }

@@ -1,0 +1,264 @@
+//! Camera pose refinement in stage 1 ([`Stage1Config::pose_lr`]): each training view's pose is
+//! corrected while the SDF trains, as IDR trains its cameras, so that registration errors of a
+//! degree or a few pixels (what structure-from-motion leaves on a hard capture) do not erode the
+//! surface.
+//!
+//! Each view carries a rotation about its own centre and a shift of its centre, applied on the
+//! left of its camera-to-world pose: `world_from_camera' = [R(ω)·R | c + δc]`, so its rays become
+//! `o' = o + δc`, `d' = R(ω)·d`. The gradient comes from the per-ray gradients of the loss in the
+//! ray's origin and direction ([`super::stage1::RayGrads`]): `∂L/∂δc = Σ ∂L/∂o` and, for a
+//! rotation `ε` applied on the left of the current one, `∂L/∂ε = Σ d × ∂L/∂d`. Adam runs on that
+//! tangent (the step is composed into the stored rotation, then the tangent is zero again), in
+//! units of a pixel at the object: a translation unit is the scene's pixel footprint and a
+//! rotation unit is the footprint over the camera's distance to the object, so `pose_lr` reads as
+//! pixels per step for both.
+//!
+//! The state is `f32` (rotation vectors and shifts) and its Adam moments, saved with the
+//! checkpoint, so a resumed run continues the same curve.
+
+use glam::{DMat4, DQuat, DVec3};
+use serde::Serialize;
+
+use super::stage1::{adam_host, Batch, RayGrads};
+use crate::backend::{Backend, BackendError};
+use crate::nn::adam::{host_grad_norm, AdamConfig, AdamState};
+use crate::nn::params::ParamStore;
+use crate::scene::{Camera, View};
+use crate::util::DataError;
+use std::path::Path;
+
+/// Each view's pose correction and its optimiser state.
+#[derive(Debug)]
+pub struct PoseRefinement {
+    /// Rotation vector (axis × angle, radians) of each view's correction.
+    pub rotation: Vec<[f32; 3]>,
+    /// Shift of each view's centre (normalised world units).
+    pub translation: Vec<[f32; 3]>,
+    adam: AdamState,
+    /// Updates applied.
+    pub steps: u64,
+}
+
+/// One view's correction as reported (`poses.json`, `train_report.json`).
+#[derive(Clone, Debug, Serialize)]
+pub struct ViewCorrection {
+    pub view: usize,
+    pub rotation_deg: f64,
+    /// The centre's shift, normalised world units.
+    pub translation: f64,
+    /// Both as pixels at the object: the shift and the rotation's arc at the object's distance
+    /// over the scene's pixel footprint.
+    pub translation_px: f64,
+    pub rotation_px: f64,
+}
+
+/// Parameters per view: 3 translation then 3 rotation.
+const PER_VIEW: usize = 6;
+
+impl PoseRefinement {
+    pub fn new(host: &Backend, views: usize) -> Self {
+        Self { rotation: vec![[0.0; 3]; views], translation: vec![[0.0; 3]; views], adam: AdamState::new(host, PER_VIEW * views), steps: 0 }
+    }
+
+    pub fn views(&self) -> usize {
+        self.rotation.len()
+    }
+
+    fn quat(&self, v: usize) -> DQuat {
+        DQuat::from_scaled_axis(DVec3::from(self.rotation[v].map(f64::from)))
+    }
+
+    fn shift(&self, v: usize) -> DVec3 {
+        DVec3::from(self.translation[v].map(f64::from))
+    }
+
+    /// `camera` (view `v`'s as read) with its correction.
+    pub fn camera(&self, camera: &Camera, v: usize) -> Camera {
+        let q = self.quat(v);
+        let r = glam::DMat3::from_quat(q) * camera.rotation();
+        let c = camera.center() + self.shift(v);
+        Camera { world_from_camera: DMat4::from_cols(r.x_axis.extend(0.0), r.y_axis.extend(0.0), r.z_axis.extend(0.0), c.extend(1.0)), ..camera.clone() }
+    }
+
+    /// Move `batch`'s rays (drawn from the cameras as read, `batch.view` their views) by their
+    /// views' corrections.
+    pub fn apply(&self, batch: &mut Batch) {
+        let q: Vec<(glam::Quat, glam::Vec3)> = (0..self.views()).map(|v| (self.quat(v).as_quat(), self.shift(v).as_vec3())).collect();
+        for (i, &v) in batch.view.iter().enumerate() {
+            let (q, t) = q[v as usize];
+            let o = glam::Vec3::from(batch.rays.origins[i]) + t;
+            let d = (q * glam::Vec3::from(batch.rays.dirs[i])).normalize();
+            batch.rays.origins[i] = o.to_array();
+            batch.rays.dirs[i] = d.to_array();
+        }
+    }
+
+    /// The gradient in each view's `[δc, ε]` (ε: a rotation on the left of the current one) from
+    /// the batch's per-ray gradients; `None` when a value is not finite.
+    pub fn view_gradient(&self, batch: &Batch, g: &RayGrads) -> Option<Vec<f64>> {
+        let mut out = vec![0f64; PER_VIEW * self.views()];
+        for (i, &v) in batch.view.iter().enumerate() {
+            let (go, gd) = (DVec3::from(g.origin[i].map(f64::from)), DVec3::from(g.dir[i].map(f64::from)));
+            let d = DVec3::from(batch.rays.dirs[i].map(f64::from));
+            let gr = d.cross(gd);
+            let o = &mut out[PER_VIEW * v as usize..PER_VIEW * (v as usize + 1)];
+            for a in 0..3 {
+                o[a] += go[a];
+                o[3 + a] += gr[a];
+            }
+        }
+        out.iter().all(|x| x.is_finite()).then_some(out)
+    }
+
+    /// One Adam step of `lr` pixels at the object on the views' gradient `grad`
+    /// ([`PoseRefinement::view_gradient`]), `footprint` the scene's pixel footprint and
+    /// `distance[v]` view v's distance to the object's centre.
+    pub fn step(&mut self, grad: &[f64], lr: f32, footprint: f32, distance: &[f32]) -> Result<(), BackendError> {
+        let nv = self.views();
+        if grad.len() != PER_VIEW * nv || distance.len() != nv {
+            return Err(BackendError::Shape(format!("pose refinement: {} gradient values and {} distances for {nv} views", grad.len(), distance.len())));
+        }
+        // Units of a pixel at the object: the parameter p = δ / unit, so ∂L/∂p = unit · ∂L/∂δ.
+        let unit = |v: usize, k: usize| if k < 3 { footprint as f64 } else { (footprint / distance[v].max(1e-6)) as f64 };
+        let g: Vec<f32> = (0..PER_VIEW * nv).map(|i| (grad[i] * unit(i / PER_VIEW, i % PER_VIEW)) as f32).collect();
+        if host_grad_norm(&[&g]).is_none() {
+            return Err(BackendError::Config("pose refinement: a non-finite gradient reached the optimiser".into()));
+        }
+        let mut p = vec![0f32; PER_VIEW * nv];
+        let cfg = AdamConfig { eps: 1e-15, ..AdamConfig::with_lr(lr) };
+        adam_host(&cfg, &mut p, g, &mut self.adam, lr)?;
+        for v in 0..nv {
+            let s = &p[PER_VIEW * v..PER_VIEW * (v + 1)];
+            for a in 0..3 {
+                self.translation[v][a] += (s[a] as f64 * unit(v, a)) as f32;
+            }
+            let e = DVec3::new(s[3] as f64, s[4] as f64, s[5] as f64) * unit(v, 3);
+            let q = (DQuat::from_scaled_axis(e) * self.quat(v)).normalize();
+            self.rotation[v] = q.to_scaled_axis().as_vec3().to_array();
+        }
+        self.steps += 1;
+        Ok(())
+    }
+
+    /// Each view's correction, in pixels at the object as well.
+    pub fn corrections(&self, footprint: f32, distance: &[f32]) -> Vec<ViewCorrection> {
+        (0..self.views())
+            .map(|v| {
+                let angle = self.quat(v).to_axis_angle().1;
+                let angle = if angle > std::f64::consts::PI { 2.0 * std::f64::consts::PI - angle } else { angle };
+                let t = self.shift(v).length();
+                let fp = footprint.max(1e-12) as f64;
+                ViewCorrection {
+                    view: v,
+                    rotation_deg: angle.to_degrees(),
+                    translation: t,
+                    translation_px: t / fp,
+                    rotation_px: angle * distance.get(v).copied().unwrap_or(0.0) as f64 / fp,
+                }
+            })
+            .collect()
+    }
+
+    pub fn save(&self, host: &Backend, st: &mut ParamStore) -> Result<(), BackendError> {
+        let nv = self.views();
+        st.insert("pose_rotation", &[nv, 3], self.rotation.iter().flatten().copied().collect())?;
+        st.insert("pose_translation", &[nv, 3], self.translation.iter().flatten().copied().collect())?;
+        st.put_adam_state(host, "pose", &self.adam)?;
+        st.metadata.insert("pose_steps".into(), self.steps.to_string());
+        Ok(())
+    }
+
+    /// The state [`PoseRefinement::save`] wrote, or None where the checkpoint has none.
+    pub fn load(host: &Backend, st: &ParamStore) -> Result<Option<Self>, String> {
+        let (Some(r), Some(t)) = (st.data("pose_rotation"), st.data("pose_translation")) else { return Ok(None) };
+        let views = r.len() / 3;
+        if r.len() != 3 * views || t.len() != 3 * views {
+            return Err(format!("the pose refinement holds {} and {} values, but this run has {views} views (3 each)", r.len(), t.len()));
+        }
+        if r.iter().chain(t).any(|x| !x.is_finite()) {
+            return Err("the pose refinement holds NaN/Inf values".into());
+        }
+        let mut p = Self::new(host, views);
+        p.rotation = r.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        p.translation = t.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+        if let Some(a) = st.adam_state(host, "pose").map_err(|e| e.to_string())? {
+            if a.m.len() != PER_VIEW * views {
+                return Err(format!("the pose refinement's optimiser holds {} values, but this run's {views} views need {}", a.m.len(), PER_VIEW * views));
+            }
+            p.adam = a;
+        }
+        p.steps = st.metadata.get("pose_steps").and_then(|s| s.parse().ok()).unwrap_or(0);
+        Ok(Some(p))
+    }
+}
+
+/// The refined poses' file in a stage-1 run folder (stage 2 trains through them).
+pub const POSES: &str = "poses.json";
+
+/// Write [`POSES`] (each training view's name, photo, corrected camera-to-world pose in the
+/// normalised world, column-major, and its correction) into `run_dir`, atomically; returns the
+/// summary `train_report.json` keeps.
+pub fn write_poses(run_dir: &Path, p: &PoseRefinement, views: &[&View], refined: &[Camera], footprint: f32, distance: &[f32]) -> Result<serde_json::Value, DataError> {
+    let corr = p.corrections(footprint, distance);
+    let per_view: Vec<serde_json::Value> = views
+        .iter()
+        .zip(refined)
+        .zip(&corr)
+        .map(|((v, c), k)| {
+            serde_json::json!({
+                "name": v.name,
+                "image": v.image_path.display().to_string(),
+                "world_from_camera": c.world_from_camera.to_cols_array(),
+                "correction": k,
+            })
+        })
+        .collect();
+    let n = corr.len().max(1) as f64;
+    let mean = |f: &dyn Fn(&ViewCorrection) -> f64| corr.iter().map(f).sum::<f64>() / n;
+    let max = |f: &dyn Fn(&ViewCorrection) -> f64| corr.iter().map(f).fold(0.0, f64::max);
+    let summary = serde_json::json!({
+        "views": corr.len(),
+        "updates": p.steps,
+        "mean_rotation_deg": mean(&|k| k.rotation_deg),
+        "max_rotation_deg": max(&|k| k.rotation_deg),
+        "mean_translation_px": mean(&|k| k.translation_px),
+        "max_translation_px": max(&|k| k.translation_px),
+        "file": POSES,
+    });
+    let doc = serde_json::json!({
+        "about": "stage-1 camera pose refinement: each training view's corrected camera-to-world pose (OpenCV camera axes, the scene's normalised world, column-major 4x4)",
+        "summary": summary,
+        "views": per_view,
+    });
+    crate::util::atomic_write(&run_dir.join(POSES), serde_json::to_string_pretty(&doc).unwrap_or_default().as_bytes())?;
+    Ok(summary)
+}
+
+/// Give `scene`'s training views the poses a stage-1 run refined ([`POSES`] in `run_dir`, if
+/// it has one): returns how many views took one. A view of the run the scene no longer has, or a
+/// malformed file, is an error naming the file.
+pub fn apply_run_poses(run_dir: &Path, views: &mut [View]) -> Result<usize, DataError> {
+    let path = run_dir.join(POSES);
+    if !path.is_file() {
+        return Ok(0);
+    }
+    let text = crate::util::read_text_bounded(&path, 64 << 20).map_err(|e| DataError::new(&path, e.to_string()))?;
+    let doc: serde_json::Value = serde_json::from_str(&text).map_err(|e| DataError::new(&path, format!("not valid JSON: {e}")))?;
+    let list = doc["views"].as_array().ok_or_else(|| DataError::new(&path, "no \"views\" list"))?;
+    // Stage 1 trains on the training split, or on every view where the scene has none.
+    let any_train = views.iter().any(|v| v.split == crate::scene::Split::Train);
+    let mut n = 0;
+    for e in list {
+        let name = e["name"].as_str().ok_or_else(|| DataError::new(&path, "a view without a \"name\""))?;
+        let m: Vec<f64> = e["world_from_camera"].as_array().map(|a| a.iter().filter_map(|x| x.as_f64()).collect()).unwrap_or_default();
+        if m.len() != 16 || m.iter().any(|x| !x.is_finite()) {
+            return Err(DataError::new(&path, format!("view {name:?}: \"world_from_camera\" must be 16 finite numbers")));
+        }
+        let Some(v) = views.iter_mut().find(|v| (!any_train || v.split == crate::scene::Split::Train) && v.name == name) else {
+            return Err(DataError::new(&path, format!("view {name:?} of the stage-1 run is not among the scene's training views")));
+        };
+        v.camera.world_from_camera = DMat4::from_cols_slice(&m);
+        n += 1;
+    }
+    Ok(n)
+}
