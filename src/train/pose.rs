@@ -262,3 +262,70 @@ pub fn apply_run_poses(run_dir: &Path, views: &mut [View]) -> Result<usize, Data
     }
     Ok(n)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::image_io::ImageF32;
+    use crate::scene::Split;
+
+    fn view(name: &str, split: Split, x: f64) -> View {
+        let camera = Camera { width: 4, height: 4, fx: 4.0, fy: 4.0, cx: 2.0, cy: 2.0, distortion: None, world_from_camera: DMat4::from_translation(DVec3::new(x, 0.0, -3.0)) };
+        View { name: name.into(), split, camera, image: ImageF32::new(4, 4, 3), mask: None, image_path: format!("{name}.png").into() }
+    }
+
+    #[test]
+    fn a_step_moves_each_view_by_about_the_rate_and_the_cameras_and_rays_agree() {
+        let host = Backend::cpu();
+        let mut p = PoseRefinement::new(&host, 2);
+        // View 0: the loss falls as its centre moves +x and as it turns about +y; view 1 has none.
+        let g = vec![-1.0, 0.0, 0.0, 0.0, -2.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
+        p.step(&g, 0.5, 0.01, &[3.0, 3.0]).unwrap();
+        // Adam's first step is the rate: half a pixel, 0.005 units and 0.005/3 radians.
+        assert!((p.translation[0][0] - 0.005).abs() < 1e-6, "{:?}", p.translation);
+        assert!((p.rotation[0][1] - 0.005 / 3.0).abs() < 1e-7, "{:?}", p.rotation);
+        assert_eq!((p.translation[1], p.rotation[1]), ([0.0; 3], [0.0; 3]));
+        let c = p.corrections(0.01, &[3.0, 3.0]);
+        assert!((c[0].translation_px - 0.5).abs() < 1e-3 && (c[0].rotation_px - 0.5).abs() < 1e-3, "{c:?}");
+        // The corrected camera's rays are the batch's moved rays.
+        let v = view("a", Split::Train, 0.2);
+        let cam = p.camera(&v.camera, 0);
+        let (o0, d0) = v.camera.ray(1.3, 2.7);
+        let (o1, d1) = cam.ray(1.3, 2.7);
+        let mut b = Batch::default();
+        b.rays.origins.push(o0.as_vec3().to_array());
+        b.rays.dirs.push(d0.as_vec3().to_array());
+        b.view.push(0);
+        p.apply(&mut b);
+        assert!((glam::Vec3::from(b.rays.origins[0]) - o1.as_vec3()).length() < 1e-6);
+        assert!((glam::Vec3::from(b.rays.dirs[0]) - d1.as_vec3()).length() < 1e-6);
+        // A non-finite gradient reaches nothing.
+        assert!(p.view_gradient(&b, &RayGrads { origin: vec![[f32::NAN, 0.0, 0.0]], dir: vec![[0.0; 3]] }).is_none());
+    }
+
+    #[test]
+    fn refined_poses_reach_the_training_views_by_name_and_a_bad_file_is_named() {
+        let host = Backend::cpu();
+        let dir = tempfile::tempdir().unwrap();
+        let train = [view("a", Split::Train, 0.0), view("b", Split::Train, 1.0)];
+        let mut p = PoseRefinement::new(&host, 2);
+        p.translation[1] = [0.0, 0.25, 0.0];
+        let refs: Vec<&View> = train.iter().collect();
+        let refined: Vec<Camera> = refs.iter().enumerate().map(|(i, v)| p.camera(&v.camera, i)).collect();
+        let summary = write_poses(dir.path(), &p, &refs, &refined, 0.01, &[3.0, 3.0]).unwrap();
+        assert!((summary["max_translation_px"].as_f64().unwrap() - 25.0).abs() < 1e-3, "{summary}");
+        let mut scene = vec![view("t", Split::Test, 5.0), view("b", Split::Train, 1.0), view("a", Split::Train, 0.0)];
+        assert_eq!(apply_run_poses(dir.path(), &mut scene).unwrap(), 2);
+        assert_eq!(scene[1].camera.world_from_camera, refined[1].world_from_camera);
+        assert_eq!(scene[2].camera.world_from_camera, refined[0].world_from_camera);
+        assert_eq!(scene[0].camera.world_from_camera, view("t", Split::Test, 5.0).camera.world_from_camera);
+        // A run without the file leaves the poses; a view the scene lacks and a broken file are errors naming it.
+        assert_eq!(apply_run_poses(&dir.path().join("none"), &mut scene).unwrap(), 0);
+        let mut other = vec![view("a", Split::Train, 0.0)];
+        let e = apply_run_poses(dir.path(), &mut other).unwrap_err().to_string();
+        assert!(e.contains(POSES) && e.contains("\"b\""), "{e}");
+        std::fs::write(dir.path().join(POSES), "{ not json").unwrap();
+        let e = apply_run_poses(dir.path(), &mut scene).unwrap_err().to_string();
+        assert!(e.contains(POSES) && e.contains("JSON"), "{e}");
+    }
+}
