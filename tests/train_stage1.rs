@@ -938,12 +938,8 @@ fn painted_sphere_views(n: usize) -> Vec<pii_bake::scene::View> {
         .collect()
 }
 
-/// The mean distance (pixels) between where two cameras put points of the r = 0.5 sphere and its
-/// centre: a pose error as the photos see it (a small turn and a shift across the view look
-/// alike from 3 units away).
 fn reprojection_error_px(a: &pii_bake::scene::Camera, b: &pii_bake::scene::Camera) -> f64 {
-    let pts = [[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [-0.5, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, -0.5, 0.0], [0.0, 0.0, 0.5], [0.0, 0.0, -0.5]];
-    pts.iter().map(|p| (a.project(glam::DVec3::from(*p)).unwrap() - b.project(glam::DVec3::from(*p)).unwrap()).length()).sum::<f64>() / pts.len() as f64
+    pii_bake::train::pose::reprojection_error_px(a, b).unwrap()
 }
 
 #[test]

@@ -74,6 +74,13 @@ pub struct BenchTrainArgs {
     /// The grid resolutions for those asset meshes (default: the scene's, as `export` uses).
     #[arg(long, num_args = 1..)]
     pub asset_resolution: Vec<usize>,
+    /// Train on misregistered photos: each training view turned about its centre by a normal
+    /// random angle of this many degrees and its centre shifted by as much at the object (seeded,
+    /// the same for every variant). Each row then also gives the poses' error before and after
+    /// training (`pose_error_px`: the mean image distance of points of the object, in pixels),
+    /// which pose refinement (`--set pose_lr=…`) lowers.
+    #[arg(long, value_parser = parse_pose_noise)]
+    pub pose_noise: Option<f64>,
     /// Measure the shipped mesh at these face-normal tolerances (degrees,
     /// `MeshConfig::face_tolerance_deg`) as well (default: the shipped one).
     #[arg(long, num_args = 1.., value_parser = crate::export::parse_face_tolerance)]
@@ -384,7 +391,18 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
     // What the files hold, rewritten after every variant.
     let mut json = serde_json::Value::Null;
     for scene_path in &scenes {
-        let scene = crate::scene::load(scene_path, &ReadOptions { downscale: args.downscale, ..Default::default() })?;
+        let mut scene = crate::scene::load(scene_path, &ReadOptions { downscale: args.downscale, ..Default::default() })?;
+        // The true training cameras, and the misregistered ones the bench trains on.
+        let truth: Vec<crate::scene::Camera> = train_views(&scene).0.iter().map(|v| v.camera.clone()).collect();
+        if let Some(deg) = args.pose_noise {
+            let bad = super::pose::perturbed(&truth, deg, 0);
+            let names: Vec<String> = train_views(&scene).0.iter().map(|v| v.name.clone()).collect();
+            for v in scene.views.iter_mut() {
+                if let Some(k) = names.iter().position(|n| *n == v.name) {
+                    v.camera = bad[k].clone();
+                }
+            }
+        }
         let gt_path = ["gt/mesh.obj", "gt/mesh.ply"].iter().map(|r| scene_path.join(r)).find(|p| p.is_file());
         let Some(gt_path) = gt_path else {
             anyhow::bail!("{}: no ground-truth mesh (gt/mesh.obj or gt/mesh.ply) to measure against", scene_path.display());
@@ -513,8 +531,23 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
                         assets.push(a);
                     }
                 }
+                // The poses' error against the true cameras, as read and as trained.
+                let pose_error = args.pose_noise.map(|_| {
+                    let err = |cams: &[crate::scene::Camera]| {
+                        let e: Vec<f64> = cams.iter().zip(&truth).filter_map(|(c, t)| super::pose::reprojection_error_px(c, t)).collect();
+                        e.iter().sum::<f64>() / e.len().max(1) as f64
+                    };
+                    let read: Vec<crate::scene::Camera> = views.iter().map(|v| v.camera.clone()).collect();
+                    let trained: Vec<crate::scene::Camera> = match tr.poses() {
+                        Some(p) => views.iter().enumerate().map(|(k, v)| p.camera(&v.camera, k)).collect(),
+                        None => read.clone(),
+                    };
+                    let (before, after) = (err(&read), err(&trained));
+                    ctx.say(format!("{sname} {name}: pose error {before:.2} px as read, {after:.2} px after training"));
+                    serde_json::json!({ "before": before, "after": after })
+                });
                 Ok(serde_json::json!({
-                    "scene": sname, "variant": name, "backend": backend.describe(),
+                    "scene": sname, "variant": name, "backend": backend.describe(), "pose_noise_deg": args.pose_noise, "pose_error_px": pose_error,
                     "iterations": tr.step, "it_per_s": steps as f64 / train_secs.max(1e-9), "wall_seconds": wall,
                     "field_evaluations_per_step": evals as f64 / steps.max(1) as f64,
                     "chamfer_rel": last.0, "normal_consistency": last.1, "hull_chamfer_rel": hc, "hull_normal_consistency": hn,
@@ -543,6 +576,13 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
     ctx.emit("bench_train", json);
     ctx.say(format!("wrote {}/bench-train.{{csv,json,svg}} and bench-train-time-to-accuracy.csv", args.out.display()));
     Ok(())
+}
+
+fn parse_pose_noise(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(d) if d.is_finite() && (0.0..=10.0).contains(&d) => Ok(d),
+        _ => Err(format!("{s:?}: a pose noise in degrees from 0 to 10")),
+    }
 }
 
 /// Write `bench-train.{csv,json,svg}` from what is measured so far; returns the JSON.

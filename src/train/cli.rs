@@ -609,7 +609,21 @@ pub fn train_stage1(
     let per_step = costs.per_step(backend, trainer.step - step0);
     // Held-out views (or, without them, a few training views), rendered at a bounded size.
     let t_eval = Instant::now();
-    let eval_views: Vec<&View> = if held.is_empty() { views.iter().step_by((views.len() / 4).max(1)).take(4).copied().collect() } else { held.iter().take(8).copied().collect() };
+    let mut eval_views: Vec<&View> = if held.is_empty() { views.iter().step_by((views.len() / 4).max(1)).take(4).copied().collect() } else { held.iter().take(8).copied().collect() };
+    // Training views are seen through their refined poses, where the run refines them.
+    let refined_eval: Vec<View> = match trainer.poses() {
+        Some(p) if held.is_empty() => eval_views
+            .iter()
+            .map(|v| {
+                let k = views.iter().position(|w| std::ptr::eq(*w, *v)).unwrap_or(0);
+                View { camera: p.camera(&v.camera, k), ..(*v).clone() }
+            })
+            .collect(),
+        _ => Vec::new(),
+    };
+    if !refined_eval.is_empty() {
+        eval_views = refined_eval.iter().collect();
+    }
     trainer.sync_host()?;
     let ev = evaluate_views(backend, trainer.model(), &cfg.trace, &eval_views, 128 * 128)?;
     // How many training photos see each part of the surface, on the grid stage 2 marches on (a
@@ -1057,7 +1071,9 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
     };
     let seconds_export = t.elapsed().as_secs_f64();
     // Read as the run was (a resumed bake keeps the flags it started with): its views, its frame.
-    let scene = crate::scene::load(&args.scene, &ReadOptions { downscale: Downscale::By(run.trainer.cfg.downscale.max(1)), keep_all_views: run.trainer.cfg.keep_all_views })?;
+    let mut scene = crate::scene::load(&args.scene, &ReadOptions { downscale: Downscale::By(run.trainer.cfg.downscale.max(1)), keep_all_views: run.trainer.cfg.keep_all_views })?;
+    // A check on training views (a scene without held-out ones) sees them as stage 1 refined them.
+    super::pose::apply_run_poses(&run_dir, &mut scene.views)?;
     let gt = super::preview::ground_truth_metrics(
         &args.scene,
         scene.normalisation.center,
