@@ -432,3 +432,66 @@ fn bench_train_writes_its_figures_and_reports_a_failed_variant_instead_of_losing
     let err = j["summary"][0]["error"].as_str().unwrap();
     assert!(err.contains("rays"), "{err}");
 }
+
+#[test]
+fn refined_poses_are_written_reported_and_trained_through_by_stage_two() {
+    let dir = tempfile::tempdir().unwrap();
+    let ex = example();
+    let run_with = |run: &Path, pose_lr: &str| {
+        pii(&[
+            "train", ex.to_str().unwrap(), "--out", run.to_str().unwrap(), "--stage", "all", "--rays", "96", "--downscale", "4", "--init-steps", "20", "--iterations", "3",
+            "--geometry-set", &format!("pose_lr={pose_lr}"), "--lobes", "4", "--material-iterations", "2", "--material-batch", "64", "--material-set", "points=500",
+        ])
+    };
+    let run = dir.path().join("run");
+    let o = run_with(&run, "0.5");
+    assert!(o.status.success(), "{}", text(&o));
+    let out = text(&o);
+    assert!(out.contains("camera poses refined (24 views)") && out.contains("stage 2: training through the 24 camera poses stage 1 refined"), "{out}");
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("train_report.json")).unwrap()).unwrap();
+    let p = &report["pose_refinement"];
+    // 3 steps, the first the radiance warm-up's: two updates of up to half a pixel each.
+    assert_eq!((p["views"].as_u64(), p["updates"].as_u64()), (Some(24), Some(2)), "{p}");
+    let shift = p["max_translation_px"].as_f64().unwrap();
+    assert!(shift > 0.1 && shift < 1.5, "{p}");
+    let poses: serde_json::Value = serde_json::from_slice(&std::fs::read(run.join("poses.json")).unwrap()).unwrap();
+    let views = poses["views"].as_array().unwrap();
+    assert_eq!(views.len(), 24);
+    assert!(views.iter().all(|v| v["world_from_camera"].as_array().unwrap().len() == 16 && v["name"].is_string()), "{}", views[0]);
+    // Off: no poses file, nothing reported, and stage 2 reads the poses as they are.
+    let off = dir.path().join("off");
+    let o = run_with(&off, "0");
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(!off.join("poses.json").exists() && !text(&o).contains("camera poses refined"), "{}", text(&o));
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(off.join("train_report.json")).unwrap()).unwrap();
+    assert!(report["pose_refinement"].is_null());
+    // A poses file that names a view the scene lacks stops stage 2 with the file's name.
+    let text_p = std::fs::read_to_string(run.join("poses.json")).unwrap().replace(views[0]["name"].as_str().unwrap(), "not-a-view");
+    std::fs::write(run.join("poses.json"), text_p).unwrap();
+    let o = pii(&["train", ex.to_str().unwrap(), "--out", run.to_str().unwrap(), "--stage", "material", "--lobes", "4", "--material-iterations", "1", "--material-batch", "64", "--material-set", "points=500"]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(text(&o).contains("poses.json") && text(&o).contains("not-a-view") && !text(&o).contains("panicked"), "{}", text(&o));
+}
+
+#[test]
+fn bench_train_misregisters_the_photos_and_reports_the_pose_error_before_and_after() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("bench");
+    let args = ["bench", "train", "--variant", "fast-refined-sphere", "--max-iterations", "3", "--eval-every", "3", "--mesh-resolution", "24", "--downscale", "4", "--rays", "64", "--reference-steps", "0", "--asset-resolution", "24", "--set", "pose_lr=0.5", "--pose-noise", "1", "--out", out.to_str().unwrap()];
+    let o = pii(&args);
+    assert!(o.status.success(), "{}", text(&o));
+    let j: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("bench-train.json")).unwrap()).unwrap();
+    let e = &j["summary"][0]["pose_error_px"];
+    let (before, after) = (e["before"].as_f64().unwrap(), e["after"].as_f64().unwrap());
+    // A 1° turn of a 150 px wide view at 1/4 is about a pixel; two refinement steps move it by
+    // at most a pixel at the object.
+    assert!(before > 0.2 && before < 5.0 && after.is_finite() && after != before, "{e}");
+    assert_eq!(j["summary"][0]["pose_noise_deg"], 1.0);
+    assert!(text(&o).contains("pose error"), "{}", text(&o));
+    let mut bad = args.to_vec();
+    let i = bad.iter().position(|a| *a == "--pose-noise").unwrap();
+    bad[i + 1] = "20";
+    let o = pii(&bad);
+    assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+    assert!(text(&o).contains("pose noise in degrees"), "{}", text(&o));
+}
