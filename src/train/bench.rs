@@ -395,12 +395,13 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
         // The true training cameras, and the misregistered ones the bench trains on.
         let truth: Vec<crate::scene::Camera> = train_views(&scene).0.iter().map(|v| v.camera.clone()).collect();
         if let Some(deg) = args.pose_noise {
+            // The training views as `train_views` picks them (held-out views keep their poses:
+            // they may share a training view's name).
+            let train: Vec<*const View> = train_views(&scene).0.iter().map(|v| *v as *const View).collect();
+            let at: Vec<usize> = train.iter().filter_map(|p| scene.views.iter().position(|v| std::ptr::eq(v, *p))).collect();
             let bad = super::pose::perturbed(&truth, deg, 0);
-            let names: Vec<String> = train_views(&scene).0.iter().map(|v| v.name.clone()).collect();
-            for v in scene.views.iter_mut() {
-                if let Some(k) = names.iter().position(|n| *n == v.name) {
-                    v.camera = bad[k].clone();
-                }
+            for (k, &i) in at.iter().enumerate() {
+                scene.views[i].camera = bad[k].clone();
             }
         }
         let gt_path = ["gt/mesh.obj", "gt/mesh.ply"].iter().map(|r| scene_path.join(r)).find(|p| p.is_file());

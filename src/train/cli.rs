@@ -66,6 +66,12 @@ pub struct TrainOptions {
     /// mask); by default such a view is left out and named.
     #[arg(long)]
     pub keep_all_views: bool,
+    /// Refine each training view's camera pose with the SDF (stage 1), for photos whose poses may
+    /// be off by a pixel or more (structure from motion on a hard capture): the run writes the
+    /// refined poses to `poses.json` and stage 2 trains through them. The rate is 0.02 pixels at
+    /// the object per step (`--geometry-set pose_lr=…` for another).
+    #[arg(long)]
+    pub refine_poses: bool,
     /// Steps of the init's fit to the hull or to `--init-mesh` (default: the preset's, 200 for the
     /// hull, 600 for a mesh).
     #[arg(long)]
@@ -467,6 +473,9 @@ pub fn train_stage1(
         let mut cfg = Stage1Config::for_scene(preset, opts.tracing, opts.init, &views, held.len(), scene.downscale);
         cfg.seed = opts.seed;
         cfg.keep_all_views = opts.keep_all_views;
+        if opts.refine_poses {
+            cfg.pose_lr = super::stage1::POSE_LR;
+        }
         if let Some(n) = opts.iterations {
             cfg.iterations = n;
         }
