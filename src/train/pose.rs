@@ -39,6 +39,32 @@ pub struct PoseRefinement {
     pub steps: u64,
 }
 
+/// The solution of the 7×7 system `a x = b` (Gaussian elimination with partial pivoting); None
+/// where it is singular.
+fn solve7(mut a: [[f64; 7]; 7], mut b: [f64; 7]) -> Option<[f64; 7]> {
+    for col in 0..7 {
+        let piv = (col..7).max_by(|&i, &j| a[i][col].abs().total_cmp(&a[j][col].abs()))?;
+        if a[piv][col].abs() < 1e-12 {
+            return None;
+        }
+        a.swap(col, piv);
+        b.swap(col, piv);
+        for r in col + 1..7 {
+            let f = a[r][col] / a[col][col];
+            for k in col..7 {
+                a[r][k] -= f * a[col][k];
+            }
+            b[r] -= f * b[col];
+        }
+    }
+    let mut x = [0f64; 7];
+    for r in (0..7).rev() {
+        let s: f64 = (r + 1..7).map(|k| a[r][k] * x[k]).sum();
+        x[r] = (b[r] - s) / a[r][r];
+    }
+    Some(x)
+}
+
 /// One view's correction as reported (`poses.json`, `train_report.json`).
 #[derive(Clone, Debug, Serialize)]
 pub struct ViewCorrection {
@@ -113,11 +139,12 @@ impl PoseRefinement {
     /// One Adam step of `lr` pixels at the object on the views' gradient `grad`
     /// ([`PoseRefinement::view_gradient`]), `footprint` the scene's pixel footprint and
     /// `distance[v]` view v's distance to the object's centre.
-    pub fn step(&mut self, grad: &[f64], lr: f32, footprint: f32, distance: &[f32]) -> Result<(), BackendError> {
+    pub fn step(&mut self, grad: &[f64], lr: f32, footprint: f32, centres: &[[f32; 3]]) -> Result<(), BackendError> {
         let nv = self.views();
-        if grad.len() != PER_VIEW * nv || distance.len() != nv {
-            return Err(BackendError::Shape(format!("pose refinement: {} gradient values and {} distances for {nv} views", grad.len(), distance.len())));
+        if grad.len() != PER_VIEW * nv || centres.len() != nv {
+            return Err(BackendError::Shape(format!("pose refinement: {} gradient values and {} camera centres for {nv} views", grad.len(), centres.len())));
         }
+        let distance: Vec<f32> = centres.iter().map(|c| glam::Vec3::from(*c).length()).collect();
         // Units of a pixel at the object: the parameter p = δ / unit, so ∂L/∂p = unit · ∂L/∂δ.
         let unit = |v: usize, k: usize| if k < 3 { footprint as f64 } else { (footprint / distance[v].max(1e-6)) as f64 };
         let g: Vec<f32> = (0..PER_VIEW * nv).map(|i| (grad[i] * unit(i / PER_VIEW, i % PER_VIEW)) as f32).collect();
@@ -136,8 +163,68 @@ impl PoseRefinement {
             let q = (DQuat::from_scaled_axis(e) * self.quat(v)).normalize();
             self.rotation[v] = q.to_scaled_axis().as_vec3().to_array();
         }
+        self.remove_common_motion(centres);
         self.steps += 1;
         Ok(())
+    }
+
+    /// Take out of the corrections the part every view shares: a turn, a shift and a scale of the
+    /// whole rig about the object (least squares, each view's residual in pixels at the object),
+    /// which moves the cameras and the object together and which no photo can tell; left in, it
+    /// drifts the run's frame off the one the poses were read in (the frame held-out views and a
+    /// ground truth are in) and the SDF follows. Needs 4 views at least (7 shared unknowns).
+    fn remove_common_motion(&mut self, centres: &[[f32; 3]]) {
+        let nv = self.views();
+        if nv < 4 {
+            return;
+        }
+        // Unknowns g = [ω (3), t (3), s]: view i's correction ≈ a turn ω and, for its centre c,
+        // a move ω × c + t + s·c.
+        let mut ata = [[0f64; 7]; 7];
+        let mut atb = [0f64; 7];
+        let mut add = |row: [f64; 7], b: f64| {
+            for i in 0..7 {
+                atb[i] += row[i] * b;
+                for j in 0..7 {
+                    ata[i][j] += row[i] * row[j];
+                }
+            }
+        };
+        for v in 0..nv {
+            let c = DVec3::from(centres[v].map(f64::from));
+            let d = c.length().max(1e-6);
+            let w = self.quat(v).to_scaled_axis();
+            let t = self.shift(v);
+            for a in 0..3 {
+                let mut row = [0f64; 7];
+                row[a] = d;
+                add(row, d * w[a]);
+            }
+            // (ω × c)_a = Σ_b (e_b × c)_a ω_b.
+            for a in 0..3 {
+                let mut row = [0f64; 7];
+                for b in 0..3 {
+                    row[b] = DVec3::AXES[b].cross(c)[a];
+                }
+                row[3 + a] = 1.0;
+                row[6] = c[a];
+                add(row, t[a]);
+            }
+        }
+        let Some(g) = solve7(ata, atb) else { return };
+        let (rg, tg, scale) = (DQuat::from_scaled_axis(DVec3::new(g[0], g[1], g[2])), DVec3::new(g[3], g[4], g[5]), 1.0 + g[6]);
+        if !(scale > 0.5 && g.iter().all(|x| x.is_finite())) {
+            return;
+        }
+        // Undo that similarity on every corrected camera.
+        let inv = rg.inverse();
+        for v in 0..nv {
+            let c = DVec3::from(centres[v].map(f64::from));
+            let q = (inv * self.quat(v)).normalize();
+            let centre = inv * (c + self.shift(v) - tg) / scale;
+            self.rotation[v] = q.to_scaled_axis().as_vec3().to_array();
+            self.translation[v] = (centre - c).as_vec3().to_array();
+        }
     }
 
     /// Each view's correction, in pixels at the object as well.
@@ -314,7 +401,7 @@ mod tests {
         let mut p = PoseRefinement::new(&host, 2);
         // View 0: the loss falls as its centre moves +x and as it turns about +y; view 1 has none.
         let g = vec![-1.0, 0.0, 0.0, 0.0, -2.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0];
-        p.step(&g, 0.5, 0.01, &[3.0, 3.0]).unwrap();
+        p.step(&g, 0.5, 0.01, &[[3.0, 0.0, 0.0], [0.0, 0.0, 3.0]]).unwrap();
         // Adam's first step is the rate: half a pixel, 0.005 units and 0.005/3 radians.
         assert!((p.translation[0][0] - 0.005).abs() < 1e-6, "{:?}", p.translation);
         assert!((p.rotation[0][1] - 0.005 / 3.0).abs() < 1e-7, "{:?}", p.rotation);
@@ -335,6 +422,50 @@ mod tests {
         assert!((glam::Vec3::from(b.rays.dirs[0]) - d1.as_vec3()).length() < 1e-6);
         // A non-finite gradient reaches nothing.
         assert!(p.view_gradient(&b, &RayGrads { origin: vec![[f32::NAN, 0.0, 0.0]], dir: vec![[0.0; 3]] }).is_none());
+    }
+
+    #[test]
+    fn a_turn_shift_and_scale_of_the_whole_rig_is_taken_out_and_a_single_views_correction_kept() {
+        let host = Backend::cpu();
+        let centres: Vec<[f32; 3]> = (0..8)
+            .map(|i| {
+                let a = i as f32 * 0.785;
+                [3.0 * a.cos(), if i % 2 == 0 { 0.8 } else { -0.5 }, 3.0 * a.sin()]
+            })
+            .collect();
+        let mut p = PoseRefinement::new(&host, 8);
+        // Every camera moved by one similarity about the object: a 0.3° turn, a shift, 0.2% larger.
+        let rg = DQuat::from_scaled_axis(DVec3::new(0.2, -0.4, 0.3).normalize() * 0.3f64.to_radians());
+        let (tg, s) = (DVec3::new(0.004, -0.002, 0.003), 1.002);
+        for v in 0..8 {
+            let c = DVec3::from(centres[v].map(f64::from));
+            p.rotation[v] = rg.to_scaled_axis().as_vec3().to_array();
+            p.translation[v] = (s * (rg * c) + tg - c).as_vec3().to_array();
+        }
+        // ... and view 3 alone turned 0.5° more.
+        let own = DQuat::from_scaled_axis(DVec3::Y * 0.5f64.to_radians());
+        p.rotation[3] = (own * rg).to_scaled_axis().as_vec3().to_array();
+        p.remove_common_motion(&centres);
+        let c = p.corrections(0.01, &centres.iter().map(|c| glam::Vec3::from(*c).length()).collect::<Vec<_>>());
+        // The shared part is gone from the others (to the few hundredths of a pixel view 3's own
+        // turn leaves in the fit); view 3 keeps most of its own 0.5°.
+        for k in c.iter().filter(|k| k.view != 3) {
+            assert!(k.translation_px + k.rotation_px < 0.25 * (0.5f64.to_radians() * 3.0 / 0.01), "{k:?}");
+        }
+        assert!(c[3].rotation_deg > 0.35 && c[3].rotation_deg < 0.55, "{:?}", c[3]);
+        // With no view of its own the whole rig's motion is taken out, to the linear fit's
+        // second order (a hundredth of a pixel here).
+        let mut q = PoseRefinement::new(&host, 8);
+        for v in 0..8 {
+            let cv = DVec3::from(centres[v].map(f64::from));
+            q.rotation[v] = rg.to_scaled_axis().as_vec3().to_array();
+            q.translation[v] = (s * (rg * cv) + tg - cv).as_vec3().to_array();
+        }
+        q.remove_common_motion(&centres);
+        for v in 0..8 {
+            let (r, t) = (glam::Vec3::from(q.rotation[v]).length(), glam::Vec3::from(q.translation[v]).length());
+            assert!(r < 1e-5 && t < 1e-4, "view {v}: {r} rad, {t} units left");
+        }
     }
 
     #[test]

@@ -2036,7 +2036,8 @@ impl Trainer {
             self.apply(d_sdf.map(|d| sdf_grad_to_host(backend, d)).transpose()?, radiance_grad_to_host(backend, d_radiance)?, lf, lr)?
         };
         if let (true, Some(Some(g)), Some(p)) = (applied, pose_grad, self.poses.as_mut()) {
-            p.step(&g, self.cfg.pose_lr * f, self.cfg.sizes.pixel_footprint, &Self::view_distances(data))?;
+            let centres: Vec<[f32; 3]> = data.views.iter().map(|v| v.camera.center().as_vec3().to_array()).collect();
+            p.step(&g, self.cfg.pose_lr * f, self.cfg.sizes.pixel_footprint, &centres)?;
         }
         self.step += 1;
         Ok(StepStats { step: self.step, applied, grad_norm: norm, lr_field: lf, ..stats })
