@@ -259,6 +259,10 @@ pub struct Stage1Config {
     /// rate), from the SDF's first trained step. 0: the poses as read (run files without it).
     #[serde(default)]
     pub pose_lr: f32,
+    /// The pose refinement's colour slopes across the ray are taken at every this-many-th surface
+    /// ray ([`RayGrads::across_every`]; 1: all, each costing two more colour evaluations).
+    #[serde(default = "default_pose_across_every")]
+    pub pose_across_every: u32,
     pub seed: u64,
     pub checkpoint_every: u64,
     pub downscale: usize,
@@ -437,6 +441,7 @@ impl Stage1Config {
             device_optimiser: true,
             // Off: the poses as read (`POSE_LR`'s figures; `--refine-poses` turns it on).
             pose_lr: 0.0,
+            pose_across_every: 4,
             seed: 0,
             // About 14 s of this 2-core box's training between checkpoints (50 steps of 4096 rays).
             checkpoint_every: 50,
@@ -617,6 +622,9 @@ fn default_volume_sharpness() -> [f32; 2] {
 }
 fn default_volume_mask_weight() -> f32 {
     1.0
+}
+fn default_pose_across_every() -> u32 {
+    1
 }
 fn default_warmup_priming_steps() -> u64 {
     u64::MAX
@@ -1126,11 +1134,15 @@ pub fn loss_and_grad(
 pub struct RayGrads {
     pub origin: Vec<[f32; 3]>,
     pub dir: Vec<[f32; 3]>,
+    /// An input: the slopes across the ray (two more colour evaluations per point) are taken at
+    /// every this-many-th surface ray only and scaled by it, an unbiased estimate of their sum
+    /// at a fraction of the cost ([`Stage1Config::pose_across_every`]); 0 or 1: every ray.
+    pub across_every: usize,
 }
 
 impl RayGrads {
-    fn zeros(n: usize) -> Self {
-        Self { origin: vec![[0.0; 3]; n], dir: vec![[0.0; 3]; n] }
+    fn zeros(n: usize, across_every: usize) -> Self {
+        Self { origin: vec![[0.0; 3]; n], dir: vec![[0.0; 3]; n], across_every }
     }
 }
 
@@ -1199,8 +1211,9 @@ fn loss_and_grad_tensors(
     mut ray_grads: Option<&mut RayGrads>,
 ) -> Result<StepGradTensors, BackendError> {
     let nrays = batch.rays.len();
+    let across_every = ray_grads.as_ref().map_or(1, |rg| rg.across_every.max(1));
     if let Some(rg) = ray_grads.as_deref_mut() {
-        *rg = RayGrads::zeros(nrays);
+        *rg = RayGrads::zeros(nrays, across_every);
     }
     let sdf_fn = model.sdf_batch(backend)?;
     let tr = trace(&sdf_fn, &batch.rays, trace_cfg)?;
@@ -1246,12 +1259,15 @@ fn loss_and_grad_tensors(
     };
     // For the rays' gradients, the colour a step across the ray in two directions.
     let across_dirs: Vec<[[f32; 3]; 2]> = if ray_grads.is_some() { dirs.iter().map(|&d| across(d)).collect() } else { Vec::new() };
+    // Taken at every `across_every`-th surface point (k / across_every in these lists).
     let mut c_across: [Vec<[f32; 3]>; 2] = [Vec::new(), Vec::new()];
     if ray_grads.is_some() && !x0.is_empty() {
+        let sel: Vec<usize> = (0..x0.len()).step_by(across_every).collect();
+        let sel_dirs: Vec<[f32; 3]> = sel.iter().map(|&k| dirs[k]).collect();
         for (j, c) in c_across.iter_mut().enumerate() {
-            let p: Vec<[f32; 3]> = x0.iter().zip(&across_dirs).map(|(p, u)| [0, 1, 2].map(|a| p[a] + RAY_EPS * u[j][a])).collect();
+            let p: Vec<[f32; 3]> = sel.iter().map(|&k| [0, 1, 2].map(|a| x0[k][a] + RAY_EPS * across_dirs[k][j][a])).collect();
             evals += 7 * p.len();
-            *c = model.colour(backend, &p, &dirs)?;
+            *c = model.colour(backend, &p, &sel_dirs)?;
         }
     }
 
@@ -1308,7 +1324,12 @@ fn loss_and_grad_tensors(
                         if gdotv < -ls.grazing_cos {
                             // ∂L/∂x, then ∂L/∂o = (I − v∇fᵀ/(∇f·v))ᵀ ∂L/∂x, ∂L/∂v = t ∂L/∂o.
                             let (u, d) = (&across_dirs[k], dirs[k]);
-                            let (a1, a2) = (slope(k, &c_across[0][k]), slope(k, &c_across[1][k]));
+                            let (a1, a2) = if k % across_every == 0 {
+                                let (j, w) = (k / across_every, across_every as f32);
+                                (w * slope(k, &c_across[0][j]), w * slope(k, &c_across[1][j]))
+                            } else {
+                                (0.0, 0.0)
+                            };
                             let i = surf[k];
                             let o_i = batch.rays.origins[i];
                             let t: f32 = (0..3).map(|a| (x0[k][a] - o_i[a]) * d[a]).sum();
@@ -2000,7 +2021,7 @@ impl Trainer {
                     multiview: mv,
                     settings: super::multiview::PhotoConsistency { weight: photo_weight, best: super::multiview::BEST, depth_step: self.cfg.sizes.pixel_footprint },
                 });
-                let rg = (refine_poses && !warm).then(RayGrads::default);
+                let rg = (refine_poses && !warm).then(|| RayGrads { across_every: self.cfg.pose_across_every as usize, ..Default::default() });
                 let mut rg = rg;
                 let (st, d_sdf, d_radiance) = loss_and_grad_tensors(backend, &self.model, &self.cfg.trace, &batch, &eik, &ls, jitter, photo, rg.as_mut())?;
                 ray_grads = rg;
