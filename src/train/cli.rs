@@ -653,7 +653,8 @@ pub fn train_stage1(
     let coverage = super::coverage::surface_coverage(&grid, &cameras)?;
     let mut flags: Vec<String> = Vec::new();
     if ev.mask_iou < 0.8 {
-        flags.push(format!("mask IoU {:.3} < 0.8: check masks, poses and view count", ev.mask_iou));
+        let poses = if trainer.poses().is_some() { "poses" } else { "poses (--refine-poses corrects poses a few pixels off)" };
+        flags.push(format!("mask IoU {:.3} < 0.8: check masks, {poses} and view count", ev.mask_iou));
     }
     if trainer.skipped * 10 > trainer.step.max(1) {
         flags.push(format!("{} of {} steps skipped for non-finite gradients", trainer.skipped, trainer.step));
