@@ -465,13 +465,17 @@ fn refined_poses_are_written_reported_and_trained_through_by_stage_two() {
     assert!(!off.join("poses.json").exists() && !text(&o).contains("camera poses refined"), "{}", text(&o));
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(off.join("train_report.json")).unwrap()).unwrap();
     assert!(report["pose_refinement"].is_null());
-    // `--refine-poses` turns it on at the preset's rate.
-    let on = dir.path().join("on");
-    let o = pii(&["train", ex.to_str().unwrap(), "--out", on.to_str().unwrap(), "--stage", "geometry", "--rays", "96", "--downscale", "4", "--init-steps", "20", "--iterations", "2", "--refine-poses"]);
-    assert!(o.status.success(), "{}", text(&o));
-    let cfg: serde_json::Value = serde_json::from_slice(&std::fs::read(on.join("run.json")).unwrap()).unwrap();
-    assert_eq!(cfg["config"]["pose_lr"].as_f64(), Some(pii_bake::train::stage1::POSE_LR as f64));
-    assert!(on.join("poses.json").is_file());
+    // On by default at the preset's rate; `--fixed-poses` keeps the poses as read.
+    for (name, flag, lr) in [("on", None, pii_bake::train::stage1::POSE_LR as f64), ("fixed", Some("--fixed-poses"), 0.0)] {
+        let r = dir.path().join(name);
+        let mut a = vec!["train", ex.to_str().unwrap(), "--out", r.to_str().unwrap(), "--stage", "geometry", "--rays", "96", "--downscale", "4", "--init-steps", "20", "--iterations", "2"];
+        a.extend(flag);
+        let o = pii(&a);
+        assert!(o.status.success(), "{}", text(&o));
+        let cfg: serde_json::Value = serde_json::from_slice(&std::fs::read(r.join("run.json")).unwrap()).unwrap();
+        assert_eq!(cfg["config"]["pose_lr"].as_f64(), Some(lr), "{name}");
+        assert_eq!(r.join("poses.json").is_file(), lr > 0.0, "{name}");
+    }
     // A poses file that names a view the scene lacks stops stage 2 with the file's name.
     let text_p = std::fs::read_to_string(run.join("poses.json")).unwrap().replace(views[0]["name"].as_str().unwrap(), "not-a-view");
     std::fs::write(run.join("poses.json"), text_p).unwrap();

@@ -66,12 +66,12 @@ pub struct TrainOptions {
     /// mask); by default such a view is left out and named.
     #[arg(long)]
     pub keep_all_views: bool,
-    /// Refine each training view's camera pose with the SDF (stage 1), for photos whose poses may
-    /// be off by a pixel or more (structure from motion on a hard capture): the run writes the
-    /// refined poses to `poses.json` and stage 2 trains through them. The rate is 0.02 pixels at
-    /// the object per step (`--geometry-set pose_lr=…` for another).
+    /// Keep the camera poses as read. By default stage 1 refines each training view's pose with
+    /// the SDF (poses a pixel or more off, as structure from motion leaves on a hard capture,
+    /// otherwise erode the surface), writes them to the run's `poses.json` and stage 2 trains
+    /// through them; exact poses (rendered scenes, calibrated rigs) pay a little for it.
     #[arg(long)]
-    pub refine_poses: bool,
+    pub fixed_poses: bool,
     /// Steps of the init's fit to the hull or to `--init-mesh` (default: the preset's, 200 for the
     /// hull, 600 for a mesh).
     #[arg(long)]
@@ -473,8 +473,8 @@ pub fn train_stage1(
         let mut cfg = Stage1Config::for_scene(preset, opts.tracing, opts.init, &views, held.len(), scene.downscale);
         cfg.seed = opts.seed;
         cfg.keep_all_views = opts.keep_all_views;
-        if opts.refine_poses {
-            cfg.pose_lr = super::stage1::POSE_LR;
+        if opts.fixed_poses {
+            cfg.pose_lr = 0.0;
         }
         if let Some(n) = opts.iterations {
             cfg.iterations = n;
@@ -653,7 +653,7 @@ pub fn train_stage1(
     let coverage = super::coverage::surface_coverage(&grid, &cameras)?;
     let mut flags: Vec<String> = Vec::new();
     if ev.mask_iou < 0.8 {
-        let poses = if trainer.poses().is_some() { "poses" } else { "poses (--refine-poses corrects poses a few pixels off)" };
+        let poses = if trainer.poses().is_some() { "poses" } else { "poses (without --fixed-poses, stage 1 corrects poses a few pixels off)" };
         flags.push(format!("mask IoU {:.3} < 0.8: check masks, {poses} and view count", ev.mask_iou));
     }
     if trainer.skipped * 10 > trainer.step.max(1) {
