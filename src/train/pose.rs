@@ -421,7 +421,7 @@ mod tests {
         assert!((glam::Vec3::from(b.rays.origins[0]) - o1.as_vec3()).length() < 1e-6);
         assert!((glam::Vec3::from(b.rays.dirs[0]) - d1.as_vec3()).length() < 1e-6);
         // A non-finite gradient reaches nothing.
-        assert!(p.view_gradient(&b, &RayGrads { origin: vec![[f32::NAN, 0.0, 0.0]], dir: vec![[0.0; 3]] }).is_none());
+        assert!(p.view_gradient(&b, &RayGrads { origin: vec![[f32::NAN, 0.0, 0.0]], dir: vec![[0.0; 3]], across_every: 1 }).is_none());
     }
 
     #[test]
