@@ -861,6 +861,8 @@ fn radiance_warm_up_steps_hold_the_sdf_and_its_moments_and_train_the_radiance_ne
         cfg.radiance_warmup = warmup;
         cfg.warmup_priming_steps = 0;
         cfg.lr_field = lr_field;
+        // The poses as read: a refined pose would move the full run's rays from its first step.
+        cfg.pose_lr = 0.0;
         cfg
     };
     let cpu = Backend::cpu();
