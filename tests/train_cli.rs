@@ -458,13 +458,20 @@ fn refined_poses_are_written_reported_and_trained_through_by_stage_two() {
     let views = poses["views"].as_array().unwrap();
     assert_eq!(views.len(), 24);
     assert!(views.iter().all(|v| v["world_from_camera"].as_array().unwrap().len() == 16 && v["name"].is_string()), "{}", views[0]);
+    // The hull is carved again through the refined poses or kept, decided once, at the first step
+    // with refined poses from 40% of the run on (step 2: step 1 is the warm-up's), and said.
+    let h = &report["hull_recarve"];
+    assert_eq!(h["step"].as_u64(), Some(2), "{h}");
+    let moved = h["largest_correction_px"].as_f64().unwrap();
+    assert_eq!(h["recarved"].as_bool(), Some(moved > h["half_voxel_px"].as_f64().unwrap()), "{h}");
+    assert!(out.contains("stage 1: the refined poses moved"), "{out}");
     // Off: no poses file, nothing reported, and stage 2 reads the poses as they are.
     let off = dir.path().join("off");
     let o = run_with(&off, "0");
     assert!(o.status.success(), "{}", text(&o));
     assert!(!off.join("poses.json").exists() && !text(&o).contains("camera poses refined"), "{}", text(&o));
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(off.join("train_report.json")).unwrap()).unwrap();
-    assert!(report["pose_refinement"].is_null());
+    assert!(report["pose_refinement"].is_null() && report["hull_recarve"].is_null(), "{report}");
     // On by default at the preset's rate; `--fixed-poses` keeps the poses as read.
     for (name, flag, lr) in [("on", None, pii_bake::train::stage1::POSE_LR as f64), ("fixed", Some("--fixed-poses"), 0.0)] {
         let r = dir.path().join(name);

@@ -497,6 +497,9 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
                 while tr.step < cfg.iterations && wall < args.seconds {
                     let t = Instant::now();
                     let st = tr.train_step(&backend, &data)?;
+                    if let Some(rec) = super::cli::recarve_hull_from_poses(&backend, &mut tr, &views, |_, _| {})? {
+                        ctx.say(format!("{sname} {name}: {}", super::cli::recarve_line(&rec)));
+                    }
                     evals += st.field_evaluations;
                     steps += 1;
                     let dt = t.elapsed().as_secs_f64();
@@ -553,7 +556,7 @@ pub fn run(args: &BenchTrainArgs, ctx: &Context) -> anyhow::Result<()> {
                     "field_evaluations_per_step": evals as f64 / steps.max(1) as f64,
                     "chamfer_rel": last.0, "normal_consistency": last.1, "hull_chamfer_rel": hc, "hull_normal_consistency": hn,
                     "seconds_to_half_hull_chamfer": reached, "held_out_psnr": ev.psnr, "mask_iou": ev.mask_iou, "skipped_steps": tr.skipped,
-                    "asset": assets,
+                    "asset": assets, "hull_recarve": tr.hull_recarve,
                 }))
             };
             let row = run_variant().unwrap_or_else(|e| {

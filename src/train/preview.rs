@@ -81,6 +81,9 @@ pub struct BakeArgs {
 /// A view in the normalised frame, as hull carving and photo projection see it.
 pub struct ViewAdapter<'a> {
     view: &'a View,
+    /// The camera points are projected through: the view's own, or one put in its place (a
+    /// refined pose, [`ViewAdapter::posed`]).
+    camera: crate::scene::Camera,
     centre: [f32; 3],
     /// The inverse of the camera's pose, formed once (carving projects millions of points).
     camera_from_world: DMat4,
@@ -88,13 +91,19 @@ pub struct ViewAdapter<'a> {
 
 impl<'a> ViewAdapter<'a> {
     pub fn new(view: &'a View) -> Self {
-        Self { view, centre: view.camera.center().as_vec3().to_array(), camera_from_world: view.camera.world_from_camera.inverse() }
+        Self::posed(view, &view.camera)
+    }
+
+    /// The view's photo and mask seen through `camera` in place of its own (same size and
+    /// intrinsics: a refined pose).
+    pub fn posed(view: &'a View, camera: &crate::scene::Camera) -> Self {
+        Self { view, camera: camera.clone(), centre: camera.center().as_vec3().to_array(), camera_from_world: camera.world_from_camera.inverse() }
     }
 }
 
 impl MaskView for ViewAdapter<'_> {
     fn project(&self, p: [f32; 3]) -> Option<[f32; 2]> {
-        let q = self.view.camera.project_camera_point(self.camera_from_world.transform_point3(DVec3::from(p.map(f64::from))))?;
+        let q = self.camera.project_camera_point(self.camera_from_world.transform_point3(DVec3::from(p.map(f64::from))))?;
         Some([q.x as f32, q.y as f32])
     }
     fn mask_at(&self, px: [f32; 2]) -> Option<f32> {
@@ -146,8 +155,13 @@ pub fn asset_rotation(scene: &Scene) -> DMat3 {
 /// unit cube (`res` a side) inside the mask of at least half of the views.
 pub fn masks_hull(views: &[&View], res: usize) -> Vec<bool> {
     let adapters: Vec<ViewAdapter> = views.iter().map(|v| ViewAdapter::new(v)).collect();
+    adapters_hull(&adapters, res)
+}
+
+/// [`masks_hull`] of views seen through the given adapters (their cameras: refined poses).
+pub fn adapters_hull(adapters: &[ViewAdapter], res: usize) -> Vec<bool> {
     let mv: Vec<&dyn MaskView> = adapters.iter().map(|a| a as &dyn MaskView).collect();
-    carve(&mv, res, 1.0, 0.5, (views.len() / 2).max(1))
+    carve(&mv, res, 1.0, 0.5, (adapters.len() / 2).max(1))
 }
 
 /// One separable [1, 2, 1]/4 pass per axis over the distance grid: rounds off the voxel

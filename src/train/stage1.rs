@@ -264,6 +264,12 @@ pub struct Stage1Config {
     /// ray ([`RayGrads::across_every`]; 1: all, each costing two more colour evaluations).
     #[serde(default = "default_pose_across_every")]
     pub pose_across_every: u32,
+    /// After this fraction of the iterations, a hull-initialised run whose refinement has moved a
+    /// view by more than half a hull voxel carves the hull again through the refined poses and
+    /// fits the SDF to it ([`POSE_RECARVE_AT`] in the presets; `train::cli::recarve_hull_from_poses`).
+    /// 0: never (a mesh init, and run files without the field).
+    #[serde(default)]
+    pub pose_recarve_at: f32,
     pub seed: u64,
     pub checkpoint_every: u64,
     pub downscale: usize,
@@ -443,6 +449,7 @@ impl Stage1Config {
             // Camera poses refined with the SDF (`POSE_LR`'s figures; `--fixed-poses` keeps them).
             pose_lr: POSE_LR,
             pose_across_every: 4,
+            pose_recarve_at: POSE_RECARVE_AT,
             seed: 0,
             // About 14 s of this 2-core box's training between checkpoints (50 steps of 4096 rays).
             checkpoint_every: 50,
@@ -516,6 +523,9 @@ impl Stage1Config {
         }
         if self.hull_fit_points == 0 || !(self.hull_fit_lr.is_finite() && self.hull_fit_lr > 0.0) || !(self.hull_fit_lr_final > 0.0 && self.hull_fit_lr_final <= 1.0) {
             return bad("hull fit: points must be > 0, its learning rate > 0 and its final factor in (0, 1]");
+        }
+        if !(self.pose_recarve_at.is_finite() && (0.0..1.0).contains(&self.pose_recarve_at)) {
+            return bad("pose_recarve_at must be in [0, 1) (a fraction of the iterations; 0: never)");
         }
         Ok(())
     }
@@ -1109,6 +1119,18 @@ pub struct LossSettings {
 /// (before the shared motion was taken out), the exact example at 0.187% and 0.186%. The
 /// refinement costs 6% more field evaluations per step (129.7k against 122.7k on the example).
 pub const POSE_LR: f32 = 0.02;
+
+/// When a hull-initialised run carves its hull again through the refined poses
+/// ([`Stage1Config::pose_recarve_at`], a fraction of the iterations). The hull carved through
+/// misregistered poses is eroded wherever one view's silhouette is off: the example under
+/// `bench train --pose-noise 0.5` carves a 1.41% hull (0.31% through the true poses), and the
+/// run that fits it ends at 0.419% field Chamfer. Fitted to the true poses' hull, the same noisy
+/// run ends at 0.260%, so the start costs most of the gap to the exact run's 0.178%.
+/// Carved again at step 100 / 200 of 500 (a hull of 0.737% / 0.463%), it ends at 0.352% /
+/// 0.347% (the latter cut at step 485 by the bench's time budget; run through, 0.354%); the later
+/// carve sees better poses and leaves more than half the run to train from it. Exact poses never
+/// carve again (the checks in `train::cli::recarve_hull_from_poses`).
+pub const POSE_RECARVE_AT: f32 = 0.4;
 
 /// Step size of the forward difference for `∂c/∂x·v`.
 const RAY_EPS: f32 = 1e-3;
@@ -1721,6 +1743,9 @@ pub struct Trainer {
     pub fit_rate: Option<f32>,
     /// The training views' pose corrections ([`Stage1Config::pose_lr`] above 0).
     poses: Option<super::pose::PoseRefinement>,
+    /// What `train::cli::recarve_hull_from_poses` decided, once it has (kept in the checkpoint,
+    /// so a resumed run neither carves twice nor forgets that it carved).
+    pub hull_recarve: Option<serde_json::Value>,
 }
 
 /// The parameters and Adam moments a wgpu run keeps on the device
@@ -1784,7 +1809,7 @@ impl Trainer {
         let host = Backend::cpu();
         let adam_sdf = AdamState::new(&host, model.sdf_params.len());
         let adam_radiance = AdamState::new(&host, model.radiance_params.len());
-        Ok(Self { cfg, model, adam_sdf, adam_radiance, step: 0, skipped: 0, host, device: None, multiview: None, fit_rate: None, poses: None })
+        Ok(Self { cfg, model, adam_sdf, adam_radiance, step: 0, skipped: 0, host, device: None, multiview: None, fit_rate: None, poses: None, hull_recarve: None })
     }
 
     /// The model. Its grids' parameters are the host copy: after training on wgpu call
@@ -2112,13 +2137,19 @@ impl Trainer {
     /// began with at a quarter of the rate, [`FIT_RETRIES`] times at most, then fails with an
     /// error that says what to set.
     /// [`Trainer::fit_rate`] is the rate that landed.
-    pub fn fit_to_grid(&mut self, backend: &Backend, grid: &super::hull::Grid3, steps: u64, mut progress: impl FnMut(u64, f64)) -> Result<f64, BackendError> {
+    pub fn fit_to_grid(&mut self, backend: &Backend, grid: &super::hull::Grid3, steps: u64, progress: impl FnMut(u64, f64)) -> Result<f64, BackendError> {
+        self.fit_to_grid_from(backend, grid, steps, self.cfg.hull_fit_lr, progress)
+    }
+
+    /// [`Trainer::fit_to_grid`] starting at rate `lr` (a trained field refitted to a new hull
+    /// starts lower: at the preset's rate its fit diverges and starts again).
+    pub fn fit_to_grid_from(&mut self, backend: &Backend, grid: &super::hull::Grid3, steps: u64, lr: f32, mut progress: impl FnMut(u64, f64)) -> Result<f64, BackendError> {
         if steps == 0 {
             return Ok(f64::NAN);
         }
         let start = self.current_sdf_params()?;
         let before = self.sign_agreement(backend, grid)?;
-        let mut lr = self.cfg.hull_fit_lr;
+        let mut lr = lr;
         let mut tried = Vec::new();
         loop {
             let loss = self.fit_at(backend, grid, steps, lr, &mut progress)?;
@@ -2284,6 +2315,9 @@ impl Trainer {
         if let Some(p) = &self.poses {
             p.save(&self.host, &mut st).map_err(err)?;
         }
+        if let Some(r) = &self.hull_recarve {
+            st.metadata.insert("hull_recarve".into(), r.to_string());
+        }
         st.save(&dir.join(CHECKPOINT))?;
         let cfg = serde_json::json!({ "stage": "geometry", "step": self.step, "scene": scene_key, "config": self.cfg });
         crate::util::atomic_write(&dir.join(RUN_CONFIG), serde_json::to_string_pretty(&cfg).unwrap_or_default().as_bytes())
@@ -2322,6 +2356,10 @@ impl Trainer {
         t.model.field.encoder.set_active_levels(levels);
         t.skipped = st.metadata.get("skipped").and_then(|s| s.parse().ok()).unwrap_or(0);
         t.poses = super::pose::PoseRefinement::load(&host, &st).map_err(|e| DataError::new(&path, e))?;
+        t.hull_recarve = match st.metadata.get("hull_recarve") {
+            Some(r) => Some(serde_json::from_str(r).map_err(|e| DataError::new(&path, format!("checkpoint's hull_recarve record: {e}")))?),
+            None => None,
+        };
         Ok((t, scene))
     }
 }
