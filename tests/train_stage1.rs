@@ -940,6 +940,18 @@ fn painted_sphere_views(n: usize) -> Vec<pii_bake::scene::View> {
         .collect()
 }
 
+/// The painted sphere's eight views, and a copy whose view 0 is turned 2° about its own centre
+/// (about 1.7 px at the object).
+fn painted_sphere_with_a_turned_view() -> (Vec<pii_bake::scene::View>, Vec<pii_bake::scene::View>) {
+    let truth = painted_sphere_views(8);
+    let mut views = truth.clone();
+    let turn = glam::DMat3::from_axis_angle(glam::DVec3::new(0.3, 1.0, 0.1).normalize(), 2f64.to_radians());
+    let c = views[0].camera.world_from_camera;
+    let r = turn * views[0].camera.rotation();
+    views[0].camera.world_from_camera = glam::DMat4::from_cols(r.x_axis.extend(0.0), r.y_axis.extend(0.0), r.z_axis.extend(0.0), c.w_axis);
+    (truth, views)
+}
+
 fn reprojection_error_px(a: &pii_bake::scene::Camera, b: &pii_bake::scene::Camera) -> f64 {
     pii_bake::train::pose::reprojection_error_px(a, b).unwrap()
 }
@@ -950,12 +962,7 @@ fn pose_refinement_turns_a_misregistered_view_back_and_resumes_from_its_checkpoi
     // about its own centre (about 2 px at the object). Its silhouette and texture then disagree with
     // the others', and the pose refinement moves it back while the other views stay put.
     let b = Backend::cpu();
-    let truth = painted_sphere_views(8);
-    let mut views = truth.clone();
-    let turn = glam::DMat3::from_axis_angle(glam::DVec3::new(0.3, 1.0, 0.1).normalize(), 2f64.to_radians());
-    let c = views[0].camera.world_from_camera;
-    let r = turn * views[0].camera.rotation();
-    views[0].camera.world_from_camera = glam::DMat4::from_cols(r.x_axis.extend(0.0), r.y_axis.extend(0.0), r.z_axis.extend(0.0), c.w_axis);
+    let (truth, views) = painted_sphere_with_a_turned_view();
     let refs: Vec<&pii_bake::scene::View> = views.iter().collect();
     let data = TrainData::new(&refs, 1.0).unwrap();
     let mut cfg = tiny_fast_config(&refs);
@@ -1003,12 +1010,7 @@ fn a_hull_carved_through_a_misregistered_pose_is_carved_again_through_the_refine
     // by half a hull voxel and the hull stands.
     use pii_bake::train::cli::{hull_init_grid, recarve_due, recarve_hull_from_poses};
     let b = Backend::cpu();
-    let truth = painted_sphere_views(8);
-    let mut views = truth.clone();
-    let turn = glam::DMat3::from_axis_angle(glam::DVec3::new(0.3, 1.0, 0.1).normalize(), 2f64.to_radians());
-    let c = views[0].camera.world_from_camera;
-    let r = turn * views[0].camera.rotation();
-    views[0].camera.world_from_camera = glam::DMat4::from_cols(r.x_axis.extend(0.0), r.y_axis.extend(0.0), r.z_axis.extend(0.0), c.w_axis);
+    let (truth, views) = painted_sphere_with_a_turned_view();
     let run = |views: &[pii_bake::scene::View]| {
         let refs: Vec<&pii_bake::scene::View> = views.iter().collect();
         let data = TrainData::new(&refs, 1.0).unwrap();
