@@ -152,9 +152,15 @@ pub fn hull_init_grid(views: &[&View], cfg: &Stage1Config) -> Option<(super::hul
 /// (the poses stage 1 has refined, [`recarve_hull_from_poses`]).
 pub fn posed_hull_init_grid(views: &[&View], cameras: &[&crate::scene::Camera], cfg: &Stage1Config) -> Option<(super::hull::Grid3, HullInit)> {
     let adapters: Vec<ViewAdapter> = views.iter().zip(cameras).map(|(v, c)| ViewAdapter::posed(v, c)).collect();
+    let inside = super::preview::adapters_hull(&adapters, cfg.sizes.hull_resolution);
+    carved_hull_grid(&adapters, inside, cfg)
+}
+
+/// The rest of [`posed_hull_init_grid`] from its visual hull `inside` (carved through
+/// `adapters` at `cfg.sizes.hull_resolution`): the concavities carved, the signed distance.
+fn carved_hull_grid(adapters: &[ViewAdapter], mut inside: Vec<bool>, cfg: &Stage1Config) -> Option<(super::hull::Grid3, HullInit)> {
     let res = cfg.sizes.hull_resolution;
-    let visual_hull = |res: usize| super::preview::adapters_hull(&adapters, res);
-    let mut inside = visual_hull(res);
+    let visual_hull = |res: usize| super::preview::adapters_hull(adapters, res);
     if !inside.contains(&true) {
         return None;
     }
@@ -212,9 +218,9 @@ const RECARVE_MIN_SURFACE_CHANGE: f64 = 0.25;
 /// the run is due ([`Stage1Config::pose_recarve_at`] of the iterations, a hull init, poses
 /// refined), the refinement has moved some view by more than half a hull voxel in its photo (less
 /// cannot change the carve), and the plain carve through the refined poses differs from the one
-/// through the poses as read by [`RECARVE_MIN_SURFACE_CHANGE`] or more. Misregistered poses carve an eroded hull, every view's error
-/// cutting into it, and the run's start pays for it to its end (figures in
-/// [`super::stage1::POSE_RECARVE_AT`]).
+/// through the poses as read by [`RECARVE_MIN_SURFACE_CHANGE`] or more. Misregistered poses
+/// carve an eroded hull, every view's error cutting into it, and the run's start pays for it to
+/// its end (figures in [`super::stage1::POSE_RECARVE_AT`]).
 ///
 /// Returns what it decided (recorded in the trainer, so in its checkpoint) at the call that
 /// decided, None at every other. `views` are the training views the trainer's data was built
@@ -257,21 +263,16 @@ pub fn recarve_hull_from_poses(backend: &Backend, trainer: &mut Trainer, views: 
         rec["hull_surface_change_voxels"] = moved.into();
         if moved < RECARVE_MIN_SURFACE_CHANGE {
             rec["reason"] = format!("the carve through them changes {moved:.2} voxels per voxel of the hull's surface (under {RECARVE_MIN_SURFACE_CHANGE}): the hull kept").into();
-        }
-    }
-    if rec["reason"].is_null() && largest > half_voxel_px {
-        let refs: Vec<&crate::scene::Camera> = cameras.iter().collect();
-        match posed_hull_init_grid(views, &refs, &cfg) {
-            Some((grid, hull)) => {
-                let loss = trainer.fit_to_grid_from(backend, &grid, cfg.hull_fit_steps, RECARVE_FIT_RATE * cfg.hull_fit_lr, progress)?;
-                rec["recarved"] = true.into();
-                rec["voxels_inside"] = hull.voxels_inside.into();
-                rec["concavities"] = serde_json::to_value(&hull.concavities)?;
-                rec["fit_steps"] = cfg.hull_fit_steps.into();
-                rec["fit_loss"] = loss.into();
-                rec["fit_rate"] = trainer.fit_rate.into();
-            }
-            None => rec["reason"] = "the masks seen through the refined poses leave no voxel: the hull kept".into(),
+        } else if let Some((grid, hull)) = carved_hull_grid(&refined, after, &cfg) {
+            let loss = trainer.fit_to_grid_from(backend, &grid, cfg.hull_fit_steps, RECARVE_FIT_RATE * cfg.hull_fit_lr, progress)?;
+            rec["recarved"] = true.into();
+            rec["voxels_inside"] = hull.voxels_inside.into();
+            rec["concavities"] = serde_json::to_value(&hull.concavities)?;
+            rec["fit_steps"] = cfg.hull_fit_steps.into();
+            rec["fit_loss"] = loss.into();
+            rec["fit_rate"] = trainer.fit_rate.into();
+        } else {
+            rec["reason"] = "the masks seen through the refined poses leave no voxel: the hull kept".into();
         }
     }
     rec["seconds"] = t.elapsed().as_secs_f64().into();
