@@ -137,7 +137,7 @@ pub(super) fn sphere_trace(
         let mut st = vec![0f32; chunk.len() * STATE];
         for (k, s) in chunk.iter().enumerate() {
             let b = &mut st[k * STATE..(k + 1) * STATE];
-            b[..7].copy_from_slice(&[s.lo, s.lo, f32::INFINITY, s.lo, s.lo, s.lo, s.hi]);
+            b[..7].copy_from_slice(&[s.t0, s.t0, f32::INFINITY, s.t0, s.t0, s.lo, s.hi]);
             b[7] = f32::from_bits(MARCHING);
         }
         let marching = |b: &[f32]| b[7].to_bits() == MARCHING;

@@ -28,6 +28,12 @@
 //! the host looks at the rays every 8 steps instead of waiting for every step's values. Same
 //! logic, same results (bit for bit on lavapipe); the sampler and the Newton step stay here.
 //!
+//! Where the field comes with a cheap lower bound ([`SdfBatch::lower_bound`]: a render's
+//! field bounded by its own sampled grid, [`grid::GridBounded`]), [`trace`] marches each ray on
+//! the bound to where the surface can first be, skips the rays it clears, and evaluates the
+//! sampler's points only where the bound cannot prove them outside: the same surface for a
+//! fraction of the field evaluations (stage 2's renders and `relight`).
+//!
 //! Secondary rays ([`trace_secondary`]): the same sphere-tracing step from `t = start_offset`
 //! for a fixed step count (stage 2 traces from surface points toward each light lobe).
 //!
@@ -42,6 +48,8 @@
 pub mod device;
 pub mod grid;
 pub mod volume;
+
+use rayon::prelude::*;
 
 use crate::backend::BackendError;
 pub use device::DeviceSdf;
@@ -202,7 +210,32 @@ pub trait SdfBatch {
     fn pointwise(&self) -> Option<&dyn PointSdf> {
         None
     }
+    /// A cheap lower bound of this field, where it has one ([`grid::GridBounded`]): [`trace`]
+    /// then skips what the bound proves empty (see [`LowerBound`]).
+    fn lower_bound(&self) -> Option<&dyn LowerBound> {
+        None
+    }
 }
+
+/// A cheap point-by-point lower bound `b(p) ≤ f(p)` of a field `f` that is 1-Lipschitz (the
+/// assumption sphere tracing makes). [`trace`] uses it twice, leaving every hit where the field
+/// alone finds it: sphere tracing on `f` starts where stepping by `b` from the sphere's near
+/// intersection first comes within [`LowerBound::near`] of 0 (a ray `b` clears over its whole
+/// segment misses, and is recorded as a ray missing the bounding sphere is), and the sampler
+/// evaluates `f` only at its samples where `b ≤ 0` (`f > 0` at the others, so the first sign
+/// change and its bracket's values are the field's own).
+pub trait LowerBound: Sync {
+    /// A value `≤ f(p)` (`-∞` where the bound knows nothing).
+    fn lower(&self, p: [f32; 3]) -> f32;
+    /// Marching by the bound stops this close to 0 (a step that small gains nothing).
+    fn near(&self) -> f32;
+    /// A stand-in for `f(p)` at a sampler point the bound proves positive: the sampler's
+    /// closest point on a ray that misses is taken among the samples' values and these.
+    fn estimate(&self, p: [f32; 3]) -> f32;
+}
+
+/// Steps of the bound's march at most (a ray out of them starts sphere tracing where it got to).
+const BOUND_STEPS: usize = 128;
 
 /// A field cheap enough to evaluate point by point (see [`SdfBatch::pointwise`]).
 pub trait PointSdf: Sync {
@@ -244,7 +277,7 @@ pub fn trace(f: &dyn SdfBatch, rays: &Rays, cfg: &TraceConfig) -> Result<TraceRe
     let mut starts: Vec<Start> = Vec::with_capacity(n);
     for i in 0..n {
         match sphere_interval(rays.origins[i], rays.dirs[i], cfg.bound) {
-            Some((lo, hi)) => starts.push(Start { ray: i, lo, hi }),
+            Some((lo, hi)) => starts.push(Start { ray: i, t0: lo, lo, hi }),
             None => {
                 // Closest point to the centre: the mask loss pushes the field up there.
                 let o = rays.origins[i];
@@ -255,6 +288,10 @@ pub fn trace(f: &dyn SdfBatch, rays: &Rays, cfg: &TraceConfig) -> Result<TraceRe
             }
         }
     }
+    let bound = f.lower_bound();
+    if let Some(b) = bound {
+        starts = bound_starts(b, rays, starts, &mut res);
+    }
     // Unfinished rays for the sampler, and the closest point sphere tracing visited on each.
     let dev = f.device();
     let unfinished = match dev {
@@ -263,53 +300,18 @@ pub fn trace(f: &dyn SdfBatch, rays: &Rays, cfg: &TraceConfig) -> Result<TraceRe
     };
 
     // Sampler + secant on unfinished rays.
-    if !unfinished.is_empty() {
-        let mut offsets = Vec::with_capacity(unfinished.len() + 1);
-        offsets.push(0usize);
-        for u in &unfinished {
-            offsets.push(offsets.last().copied().unwrap_or(0) + u.samples);
-        }
-        let mut pts = Vec::with_capacity(offsets[unfinished.len()]);
-        for u in &unfinished {
-            pts.extend((0..u.samples).map(|j| rays.at(u.ray, u.at(j))));
-        }
-        let v = eval_at(f, &pts, &mut evals)?;
-        // Secant brackets: (ray, t_lo, f_lo, t_hi, f_hi).
-        let mut brackets: Vec<(usize, f32, f32, f32, f32)> = Vec::new();
-        for (k, u) in unfinished.iter().enumerate() {
-            let i = u.ray;
-            res.sampled[i] = true;
-            let row = &v[offsets[k]..offsets[k + 1]];
-            let mut found = None;
-            for j in 1..row.len() {
-                if row[j - 1].is_finite() && row[j].is_finite() && row[j - 1] > 0.0 && row[j] <= 0.0 {
-                    found = Some(j);
-                    break;
-                }
-            }
-            match found {
-                Some(j) => brackets.push((i, u.at(j - 1), row[j - 1], u.at(j), row[j])),
-                None => {
-                    let (mut tm, mut vm) = (u.t0, f32::INFINITY);
-                    for (j, &x) in row.iter().enumerate() {
-                        if x.is_finite() && x < vm {
-                            vm = x;
-                            tm = u.at(j);
-                        }
-                    }
-                    if let Some((tb, fb)) = u.visited.filter(|&(_, fb)| fb < vm) {
-                        (tm, vm) = (tb, fb);
-                    }
-                    res.t[i] = tm;
-                    res.points[i] = rays.at(i, tm);
-                    res.sdf[i] = vm;
-                }
-            }
-        }
-        match dev {
-            Some(d) if !brackets.is_empty() => device::secant(d, rays, &brackets, cfg, &mut res, &mut evals)?,
-            _ => secant_host(f, rays, brackets, cfg, &mut res, &mut evals)?,
-        }
+    sample_and_refine(f, bound, rays, &unfinished, cfg, &mut res, &mut evals)?;
+    if bound.is_some() {
+        // A ray sphere tracing let go near the surface (it starts there now, with steps to
+        // spare, and a grazing ray can step across a sliver of surface before leaving) gets
+        // IDR's sampler over its whole segment, which the bound makes cheap: no ray that would
+        // have run out of steps from the sphere, and been sampled so, is lost.
+        let again: Vec<Segment> = starts
+            .iter()
+            .filter(|s| !res.hit[s.ray] && res.sdf[s.ray].is_finite())
+            .map(|s| Segment { ray: s.ray, t0: s.lo, t1: s.hi, samples: cfg.sampler_samples, visited: None })
+            .collect();
+        sample_and_refine(f, bound, rays, &again, cfg, &mut res, &mut evals)?;
     }
 
     // Refined: one Newton step along the ray on every hit.
@@ -341,6 +343,88 @@ pub fn trace(f: &dyn SdfBatch, rays: &Rays, cfg: &TraceConfig) -> Result<TraceRe
     Ok(res)
 }
 
+/// IDR's sampler over `segs` (the field's values at their samples, where a bound cannot prove
+/// them outside) and the secant refinement of each first sign change; a segment without one
+/// leaves its ray a miss at its smallest value.
+fn sample_and_refine(
+    f: &dyn SdfBatch,
+    bound: Option<&dyn LowerBound>,
+    rays: &Rays,
+    segs: &[Segment],
+    cfg: &TraceConfig,
+    res: &mut TraceResult,
+    evals: &mut usize,
+) -> Result<(), BackendError> {
+    if segs.is_empty() {
+        return Ok(());
+    }
+    let dev = f.device();
+    let mut offsets = Vec::with_capacity(segs.len() + 1);
+    offsets.push(0usize);
+    for u in segs {
+        offsets.push(offsets.last().copied().unwrap_or(0) + u.samples);
+    }
+    let mut pts = Vec::with_capacity(offsets[segs.len()]);
+    for u in segs {
+        pts.extend((0..u.samples).map(|j| rays.at(u.ray, u.at(j))));
+    }
+    let v = match bound {
+        None => eval_at(f, &pts, evals)?,
+        Some(b) => {
+            // The field where the bound cannot prove it positive, and just before each such
+            // run of samples (a bracket's outside end is then the field's own value).
+            let mut need: Vec<bool> = pts.par_iter().with_min_len(4096).map(|&p| !(b.lower(p) > 0.0)).collect();
+            for w in offsets.windows(2) {
+                for j in w[0] + 1..w[1] {
+                    if need[j] && !need[j - 1] {
+                        need[j - 1] = true;
+                    }
+                }
+            }
+            let at: Vec<[f32; 3]> = pts.iter().zip(&need).filter(|(_, &k)| k).map(|(p, _)| *p).collect();
+            let mut fv = eval_at(f, &at, evals)?.into_iter();
+            pts.iter().zip(&need).map(|(&p, &k)| if k { fv.next().unwrap_or(f32::NAN) } else { b.estimate(p) }).collect()
+        }
+    };
+    // Secant brackets: (ray, t_lo, f_lo, t_hi, f_hi).
+    let mut brackets: Vec<(usize, f32, f32, f32, f32)> = Vec::new();
+    for (k, u) in segs.iter().enumerate() {
+        let i = u.ray;
+        res.sampled[i] = true;
+        let row = &v[offsets[k]..offsets[k + 1]];
+        let mut found = None;
+        for j in 1..row.len() {
+            if row[j - 1].is_finite() && row[j].is_finite() && row[j - 1] > 0.0 && row[j] <= 0.0 {
+                found = Some(j);
+                break;
+            }
+        }
+        match found {
+            Some(j) => brackets.push((i, u.at(j - 1), row[j - 1], u.at(j), row[j])),
+            None => {
+                let (mut tm, mut vm) = (u.t0, f32::INFINITY);
+                for (j, &x) in row.iter().enumerate() {
+                    if x.is_finite() && x < vm {
+                        vm = x;
+                        tm = u.at(j);
+                    }
+                }
+                if let Some((tb, fb)) = u.visited.filter(|&(_, fb)| fb < vm) {
+                    (tm, vm) = (tb, fb);
+                }
+                res.t[i] = tm;
+                res.points[i] = rays.at(i, tm);
+                res.sdf[i] = vm;
+            }
+        }
+    }
+    match dev {
+        Some(d) if !brackets.is_empty() => device::secant(d, rays, &brackets, cfg, res, evals)?,
+        _ => secant_host(f, rays, brackets, cfg, res, evals)?,
+    }
+    Ok(())
+}
+
 /// Sphere tracing of `starts` on the host, one batched evaluation of the rays still marching
 /// per step: fills `res` for hits and broken values, returns the unfinished rays' segments.
 fn sphere_trace_host(
@@ -354,7 +438,7 @@ fn sphere_trace_host(
     let local = cfg.local_samples >= 2;
     let mut active: Vec<Marching> = starts
         .iter()
-        .map(|s| Marching { ray: s.ray, t: s.lo, last_pos: s.lo, best_f: f32::INFINITY, best_t: s.lo, before_best: s.lo, lo: s.lo, hi: s.hi })
+        .map(|s| Marching { ray: s.ray, t: s.t0, last_pos: s.t0, best_f: f32::INFINITY, best_t: s.t0, before_best: s.t0, lo: s.lo, hi: s.hi })
         .collect();
     let mut unfinished: Vec<Segment> = Vec::new();
     for step in 0..=cfg.sphere_steps {
@@ -461,11 +545,50 @@ fn secant_host(
     Ok(())
 }
 
-/// A ray that meets the bounding sphere over `[lo, hi]`: sphere tracing starts at `lo`.
+/// A ray that meets the bounding sphere over `[lo, hi]`: sphere tracing starts at `t0` (`lo`,
+/// or where a [`LowerBound`]'s march got to).
 struct Start {
     ray: usize,
+    t0: f32,
     lo: f32,
     hi: f32,
+}
+
+/// March every start by the bound (the rays in parallel): a ray the bound clears to its far end
+/// misses (recorded in `res` as a ray that misses the sphere is); the others start sphere tracing
+/// where the bound came within [`LowerBound::near`] of 0.
+fn bound_starts(b: &dyn LowerBound, rays: &Rays, starts: Vec<Start>, res: &mut TraceResult) -> Vec<Start> {
+    let near = b.near();
+    let marched: Vec<Option<f32>> = starts
+        .par_iter()
+        .with_min_len(256)
+        .map(|s| {
+            let mut t = s.lo;
+            for _ in 0..BOUND_STEPS {
+                let l = b.lower(rays.at(s.ray, t));
+                if !(l > near) {
+                    return Some(t);
+                }
+                t += l;
+                if t > s.hi {
+                    return None;
+                }
+            }
+            Some(t)
+        })
+        .collect();
+    let mut kept = Vec::with_capacity(starts.len());
+    for (s, m) in starts.into_iter().zip(marched) {
+        match m {
+            Some(t0) => kept.push(Start { t0, ..s }),
+            None => {
+                let (o, d) = (rays.origins[s.ray], rays.dirs[s.ray]);
+                res.t[s.ray] = (-(o[0] * d[0] + o[1] * d[1] + o[2] * d[2])).max(0.0);
+                res.points[s.ray] = rays.at(s.ray, res.t[s.ray]);
+            }
+        }
+    }
+    kept
 }
 
 /// A ray being sphere traced: where it is, the last point known outside, the closest point

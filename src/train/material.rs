@@ -19,7 +19,7 @@ use crate::backend::{Backend, BackendError};
 use crate::context::Context;
 use crate::export::{AssetArgs, ExportConfig, ExportReport};
 use crate::mesh::field::{MaterialField, MaterialSamples};
-use crate::render::{trace, Rays, TraceConfig};
+use crate::render::{trace, Rays, SdfBatch, TraceConfig};
 use crate::scene::{Camera, Downscale, Format, ReadOptions, View};
 use crate::sg::env::LatlongConvention;
 use crate::sg::shade::{BrdfModel, Sg};
@@ -759,10 +759,15 @@ pub fn render_view_lit(backend: &Backend, sdf: &Stage1Model, tc: &TraceConfig, m
     out.normal = vec![[0.0; 3]; n];
     let mut rgbs = vec![vec![[0.0f32; 3]; n]; envs.len()];
     let f = sdf.sdf_batch(backend)?;
+    // The secondary rays' grid, where there is one, bounds the field: tracing skips what it
+    // proves empty and finds the same surface.
+    let grid = super::stage2::secondary_grid(backend, sdf, &model.cfg)?;
+    let bounded = crate::render::grid::bounded(&f, grid.as_ref().map(|g| g.0.as_ref()))?;
+    let tf: &dyn SdfBatch = bounded.as_ref().map_or(&f, |b| b);
     for start in (0..n).step_by(8192) {
         let end = (start + 8192).min(n);
         let r = Rays { origins: rays.origins[start..end].to_vec(), dirs: rays.dirs[start..end].to_vec() };
-        let tr = trace(&f, &r, tc)?;
+        let tr = trace(tf, &r, tc)?;
         let idx: Vec<usize> = (0..r.len()).filter(|&i| tr.hit[i]).collect();
         let mut c = SurfaceCache { x: idx.iter().map(|&i| tr.points[i]).collect(), v: idx.iter().map(|&i| r.dirs[i].map(|v| -v)).collect(), ..Default::default() };
         c.target = vec![[0.0; 3]; c.x.len()];

@@ -279,6 +279,7 @@ pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
     let refined = super::material::stage2_geometry(&s1.trainer, &s2)?;
     let sdf = refined.as_ref().unwrap_or(s1.trainer.model());
     let tc = &s1.trainer.cfg.trace;
+    let grid = super::stage2::secondary_grid(&backend, sdf, &s2.model.cfg)?;
     let pb = ctx.progress((views.len() * (1 + maps.len())) as u64, "relight");
     let mut n = 0;
     let mut edge_pixels = 0usize;
@@ -288,7 +289,9 @@ pub fn run(args: &RelightArgs, ctx: &Context) -> anyhow::Result<()> {
         let cam = v.camera.supersampled(ss);
         let renders = render_view_lit(&backend, sdf, tc, &s2.model, &cam, 0, &lights)?;
         let img = &renders[0];
-        let fp = Footprint::new(&sdf.sdf_batch(&backend)?, tc, &v.camera, img, ss, EDGE_RAYS)?;
+        let f = sdf.sdf_batch(&backend)?;
+        let bounded = crate::render::grid::bounded(&f, grid.as_ref().map(|g| g.0.as_ref()))?;
+        let fp = Footprint::new(bounded.as_ref().map_or(&f, |b| b), tc, &v.camera, img, ss, EDGE_RAYS)?;
         edge_pixels += fp.edge_pixels;
         fp.write(&test.join(format!("{}.png", v.name)), |k| img.rgb[k], true)?;
         fp.write(&test.join(format!("{}_albedo.png", v.name)), |k| img.albedo[k], true)?;
