@@ -325,6 +325,24 @@ fn device_tracing_matches_the_host_loop_with_a_few_waits() {
         let (host_waits, dev_waits) = (w1 - w0, w2 - w1);
         let bound = (tc.sphere_steps + 1).div_ceil(8) + 1 + tc.secant_steps.div_ceil(8) + 1;
         assert!(host_waits >= (tc.sphere_steps / 2) as f64 && dev_waits <= bound as f64, "{:?}: waits host {host_waits}, device {dev_waits}", tc.mode);
+        // Bounded by the field's own grid (stage 2's renders, relight): the device trace starts
+        // where the host's bound march says and agrees with the host loop over the same bound.
+        use pii_bake::render::grid::{GridBounded, GridLower, SdfGrid};
+        let g = SdfGrid::sample(&host, tc.bound, 33).unwrap();
+        let margin = GridBounded::new(&host, &g).unwrap().expect("a finite field has a bound").bound.margin;
+        let hb = GridBounded { field: &host, bound: GridLower { grid: &g, margin } };
+        let db = GridBounded { field: &dev, bound: GridLower { grid: &g, margin } };
+        let (c, d) = (trace(&hb, &rays, &tc).unwrap(), trace(&db, &rays, &tc).unwrap());
+        println!("{:?} bounded: {} hits, evaluations host {} device {} (unbounded {})", tc.mode, c.hits(), c.evaluations, d.evaluations, a.evaluations);
+        assert!(c.hits().abs_diff(a.hits()) <= 2, "{:?}: bounded {} hits vs {}", tc.mode, c.hits(), a.hits());
+        let mut agree = 0;
+        for i in 0..rays.len() {
+            if c.hit[i] == d.hit[i] {
+                agree += 1;
+                assert!((c.t[i] - d.t[i]).abs() < 1e-5, "{:?} bounded ray {i} (hit {}): t host {} vs device {}", tc.mode, c.hit[i], c.t[i], d.t[i]);
+            }
+        }
+        assert!(agree >= rays.len() - 1, "{:?} bounded: hit masks differ on {} rays", tc.mode, rays.len() - agree);
     }
 }
 
