@@ -530,8 +530,10 @@ fn exp_f32(x: f32) -> f32 {
     let xc = x.max(-87.3).min(88.3);
     // floor(x·log2 e + ½) by truncation of a positive number (x ≥ −87.3): no libm call.
     let t = xc * std::f32::consts::LOG2_E + 0.5 + 128.0;
-    // SAFETY: t is finite and in [1.5, 256], so it fits an i32.
-    let ni = unsafe { t.to_int_unchecked::<i32>() } - 128;
+    // SAFETY: t is finite and in [1.5, 256], so it fits an i32. Integer steps wrap (they never
+    // overflow here): a checked one would keep the loop from vectorising where overflow checks
+    // are on (the test profile).
+    let ni = unsafe { t.to_int_unchecked::<i32>() }.wrapping_sub(128);
     let n = ni as f32;
     let r = xc - n * 0.693_359_4 - n * -2.121_944_4e-4;
     let mut p = 1.987_569_1e-4f32;
@@ -541,7 +543,7 @@ fn exp_f32(x: f32) -> f32 {
     p = p * r + 1.666_666_5e-1;
     p = p * r + 0.5;
     let e = p * r * r + r + 1.0;
-    let y = e * f32::from_bits(((ni + 127) as u32) << 23);
+    let y = e * f32::from_bits((ni.wrapping_add(127) as u32) << 23);
     if x.is_nan() {
         x
     } else {
@@ -553,7 +555,7 @@ fn exp_f32(x: f32) -> f32 {
 #[inline(always)]
 fn ln_f32(u: f32) -> f32 {
     let bits = u.to_bits();
-    let mut k = ((bits >> 23) as i32 - 127) as f32;
+    let mut k = ((bits >> 23) as i32).wrapping_sub(127) as f32;
     // Mantissa in [1, 2); fold to [√½, √2).
     let mut m = f32::from_bits((bits & 0x007f_ffff) | 0x3f80_0000);
     let big = m > std::f32::consts::SQRT_2;
