@@ -278,14 +278,7 @@ pub fn trace(f: &dyn SdfBatch, rays: &Rays, cfg: &TraceConfig) -> Result<TraceRe
     for i in 0..n {
         match sphere_interval(rays.origins[i], rays.dirs[i], cfg.bound) {
             Some((lo, hi)) => starts.push(Start { ray: i, t0: lo, lo, hi }),
-            None => {
-                // Closest point to the centre: the mask loss pushes the field up there.
-                let o = rays.origins[i];
-                let d = rays.dirs[i];
-                let t = -(o[0] * d[0] + o[1] * d[1] + o[2] * d[2]);
-                res.t[i] = t.max(0.0);
-                res.points[i] = rays.at(i, res.t[i]);
-            }
+            None => record_miss(rays, i, &mut res),
         }
     }
     let bound = f.lower_bound();
@@ -554,6 +547,14 @@ struct Start {
     hi: f32,
 }
 
+/// A ray that misses before sphere tracing (the bounding sphere, or a bound that clears it):
+/// its point is the closest to the centre, where the mask loss pushes the field up.
+fn record_miss(rays: &Rays, i: usize, res: &mut TraceResult) {
+    let (o, d) = (rays.origins[i], rays.dirs[i]);
+    res.t[i] = (-(o[0] * d[0] + o[1] * d[1] + o[2] * d[2])).max(0.0);
+    res.points[i] = rays.at(i, res.t[i]);
+}
+
 /// March every start by the bound (the rays in parallel): a ray the bound clears to its far end
 /// misses (recorded in `res` as a ray that misses the sphere is); the others start sphere tracing
 /// where the bound came within [`LowerBound::near`] of 0.
@@ -581,11 +582,7 @@ fn bound_starts(b: &dyn LowerBound, rays: &Rays, starts: Vec<Start>, res: &mut T
     for (s, m) in starts.into_iter().zip(marched) {
         match m {
             Some(t0) => kept.push(Start { t0, ..s }),
-            None => {
-                let (o, d) = (rays.origins[s.ray], rays.dirs[s.ray]);
-                res.t[s.ray] = (-(o[0] * d[0] + o[1] * d[1] + o[2] * d[2])).max(0.0);
-                res.points[s.ray] = rays.at(s.ray, res.t[s.ray]);
-            }
+            None => record_miss(rays, s.ray, res),
         }
     }
     kept
