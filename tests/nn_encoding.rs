@@ -373,4 +373,17 @@ fn hash_grid_batches_equal_single_points() {
         let (_, dxi) = encoding_backward_cpu(&cfg, &params, xi, 3, &d_out[i * od..(i + 1) * od], true);
         assert_eq!(&dxi.unwrap()[..], &dx[3 * i..3 * i + 3], "row {i}");
     }
+    // The parameter gradient of the whole batch is the sum of the points' own gradients (each
+    // level scatters every point), in f64 to a rounding's width.
+    let params = uniform(cfg.num_params(), -1.0, 1.0, 11);
+    let (x, d_out) = (uniform(3 * n, -1.6, 1.6, 12), uniform(n * od, -1.0, 1.0, 13));
+    let (dp, _) = encoding_backward_cpu(&cfg, &params, &x, 3, &d_out, false);
+    let mut sum = vec![0.0; cfg.num_params()];
+    for i in 0..n {
+        let (dpi, _) = encoding_backward_cpu(&cfg, &params, &x[3 * i..3 * i + 3], 3, &d_out[i * od..(i + 1) * od], false);
+        sum.iter_mut().zip(&dpi).for_each(|(s, g)| *s += g);
+    }
+    for (e, (a, b)) in dp.iter().zip(&sum).enumerate() {
+        assert!((a - b).abs() <= 1e-9 * (1.0 + b.abs()), "entry {e}: {a} vs {b}");
+    }
 }
