@@ -359,10 +359,10 @@ fn bad_configurations_and_shapes_are_errors() {
 #[test]
 fn hash_grid_batches_equal_single_points() {
     let cfg = small_grid();
-    let params = to_f32(&uniform(cfg.num_params(), -1.0, 1.0, 11));
     let n = 20_011;
-    let x = to_f32(&uniform(3 * n, -1.6, 1.6, 12));
-    let d_out = to_f32(&uniform(n * cfg.out_dim(3), -1.0, 1.0, 13));
+    let (params64, x64) = (uniform(cfg.num_params(), -1.0, 1.0, 11), uniform(3 * n, -1.6, 1.6, 12));
+    let d_out64 = uniform(n * cfg.out_dim(3), -1.0, 1.0, 13);
+    let (params, x, d_out) = (to_f32(&params64), to_f32(&x64), to_f32(&d_out64));
     let out = encoding_forward_cpu(&cfg, &params, &x, 3);
     let (_, dx) = encoding_backward_cpu(&cfg, &params, &x, 3, &d_out, true);
     let dx = dx.expect("dx asked for");
@@ -374,13 +374,11 @@ fn hash_grid_batches_equal_single_points() {
         assert_eq!(&dxi.unwrap()[..], &dx[3 * i..3 * i + 3], "row {i}");
     }
     // The parameter gradient of the whole batch is the sum of the points' own gradients (each
-    // level scatters every point), in f64 to a rounding's width.
-    let params = uniform(cfg.num_params(), -1.0, 1.0, 11);
-    let (x, d_out) = (uniform(3 * n, -1.6, 1.6, 12), uniform(n * od, -1.0, 1.0, 13));
-    let (dp, _) = encoding_backward_cpu(&cfg, &params, &x, 3, &d_out, false);
+    // level scatters every point), on the same batch in f64 to a rounding's width.
+    let (dp, _) = encoding_backward_cpu(&cfg, &params64, &x64, 3, &d_out64, false);
     let mut sum = vec![0.0; cfg.num_params()];
     for i in 0..n {
-        let (dpi, _) = encoding_backward_cpu(&cfg, &params, &x[3 * i..3 * i + 3], 3, &d_out[i * od..(i + 1) * od], false);
+        let (dpi, _) = encoding_backward_cpu(&cfg, &params64, &x64[3 * i..3 * i + 3], 3, &d_out64[i * od..(i + 1) * od], false);
         sum.iter_mut().zip(&dpi).for_each(|(s, g)| *s += g);
     }
     for (e, (a, b)) in dp.iter().zip(&sum).enumerate() {
