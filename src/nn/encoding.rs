@@ -250,6 +250,10 @@ pub trait Real:
     fn to_f64(self) -> f64;
     fn sin(self) -> Self;
     fn cos(self) -> Self;
+    /// The slice as f32 when `Self` is f32 (the hash grid's AVX2 path is f32 only).
+    fn as_f32(s: &[Self]) -> Option<&[f32]>;
+    /// An f32 vector as `Self` (the identity for f32).
+    fn from_f32s(v: Vec<f32>) -> Vec<Self>;
 }
 
 impl Real for f32 {
@@ -265,6 +269,12 @@ impl Real for f32 {
     fn cos(self) -> Self {
         f32::cos(self)
     }
+    fn as_f32(s: &[Self]) -> Option<&[f32]> {
+        Some(s)
+    }
+    fn from_f32s(v: Vec<f32>) -> Vec<Self> {
+        v
+    }
 }
 
 impl Real for f64 {
@@ -279,6 +289,12 @@ impl Real for f64 {
     }
     fn cos(self) -> Self {
         f64::cos(self)
+    }
+    fn as_f32(_: &[Self]) -> Option<&[f32]> {
+        None
+    }
+    fn from_f32s(v: Vec<f32>) -> Vec<Self> {
+        v.into_iter().map(f64::from).collect()
     }
 }
 
@@ -367,6 +383,9 @@ pub fn frequency_backward_cpu<T: Real>(
 }
 
 // ---- hash grid (cpu) -------------------------------------------------------------------------
+
+#[cfg(target_arch = "x86_64")]
+mod grid_avx2;
 
 /// Where a point falls in one level: cell corner, fractional position, and whether each
 /// coordinate is inside the cube (clamped coordinates get no gradient).
@@ -486,14 +505,14 @@ impl<T: Real> Corners<T> {
 }
 
 /// Geometry of the grid the cpu twins and the WGSL launcher share.
-struct GridGeom {
+pub(crate) struct GridGeom {
     levels: Vec<GridLevel>,
     f: usize,
     table_mask: u32,
     bound: f64,
 }
 
-fn grid_geom(cfg: &EncodingConfig) -> Option<GridGeom> {
+pub(crate) fn grid_geom(cfg: &EncodingConfig) -> Option<GridGeom> {
     match *cfg {
         EncodingConfig::HashGrid {
             features_per_level,
@@ -525,6 +544,18 @@ pub fn hash_grid_forward_cpu<T: Real>(cfg: &EncodingConfig, params: &[T], x: &[T
     let Some(g) = grid_geom(cfg) else {
         return Vec::new();
     };
+    #[cfg(target_arch = "x86_64")]
+    if let (Some(p), Some(x)) = (T::as_f32(params), T::as_f32(x)) {
+        if grid_avx2::available() && grid_avx2::suits(&g, cfg.num_params(), Some(p.len())) {
+            // SAFETY: the CPU has AVX2 and the grid and parameters suit the lane code (checked).
+            return T::from_f32s(unsafe { grid_avx2::forward(&g, p, x) });
+        }
+    }
+    hash_grid_forward_scalar(&g, params, x)
+}
+
+/// The scalar hash grid forward (any [`Real`]; the reference of the AVX2 path).
+pub(crate) fn hash_grid_forward_scalar<T: Real>(g: &GridGeom, params: &[T], x: &[T]) -> Vec<T> {
     let od = g.levels.len() * g.f;
     let n = x.len() / 3;
     let (bound, inv_2b) = (T::from_f64(g.bound), T::from_f64(0.5 / g.bound));
@@ -572,9 +603,21 @@ pub fn hash_grid_backward_params_cpu<T: Real>(
     let Some(g) = grid_geom(cfg) else {
         return Vec::new();
     };
+    #[cfg(target_arch = "x86_64")]
+    if let (Some(x), Some(d)) = (T::as_f32(x), T::as_f32(d_out)) {
+        if grid_avx2::available() && grid_avx2::suits(&g, cfg.num_params(), None) {
+            // SAFETY: the CPU has AVX2 and the grid suits the lane code (checked).
+            return T::from_f32s(unsafe { grid_avx2::backward_params(&g, cfg.num_params(), x, d) });
+        }
+    }
+    hash_grid_backward_params_scalar(&g, cfg.num_params(), x, d_out)
+}
+
+/// The scalar hash grid parameter gradient (the reference of the AVX2 path).
+pub(crate) fn hash_grid_backward_params_scalar<T: Real>(g: &GridGeom, num_params: usize, x: &[T], d_out: &[T]) -> Vec<T> {
     let od = g.levels.len() * g.f;
     let (bound, inv_2b) = (T::from_f64(g.bound), T::from_f64(0.5 / g.bound));
-    let mut d_params = vec![T::default(); cfg.num_params()];
+    let mut d_params = vec![T::default(); num_params];
     let mut slices = Vec::with_capacity(g.levels.len());
     let mut rest = d_params.as_mut_slice();
     for lvl in &g.levels {
@@ -609,6 +652,18 @@ pub fn hash_grid_backward_x_cpu<T: Real>(
     let Some(g) = grid_geom(cfg) else {
         return Vec::new();
     };
+    #[cfg(target_arch = "x86_64")]
+    if let (Some(p), Some(x), Some(d)) = (T::as_f32(params), T::as_f32(x), T::as_f32(d_out)) {
+        if grid_avx2::available() && grid_avx2::suits(&g, cfg.num_params(), Some(p.len())) {
+            // SAFETY: the CPU has AVX2 and the grid and parameters suit the lane code (checked).
+            return T::from_f32s(unsafe { grid_avx2::backward_x(&g, p, x, d) });
+        }
+    }
+    hash_grid_backward_x_scalar(&g, params, x, d_out)
+}
+
+/// The scalar hash grid input gradient (the reference of the AVX2 path).
+pub(crate) fn hash_grid_backward_x_scalar<T: Real>(g: &GridGeom, params: &[T], x: &[T], d_out: &[T]) -> Vec<T> {
     let od = g.levels.len() * g.f;
     let (bound, inv_2b) = (T::from_f64(g.bound), T::from_f64(0.5 / g.bound));
     let mut dx = vec![T::default(); x.len()];
