@@ -126,6 +126,69 @@ struct Row {
     forward_backward_gflops: f64,
 }
 
+/// The cpu hash grid's AVX2 lane code against its scalar twin, same inputs, same run.
+#[derive(Debug, Clone, serde::Serialize)]
+struct GridLanes {
+    network: String,
+    batch: usize,
+    /// Scalar time over lane time (best of the rounds), per pass.
+    forward_speedup: f64,
+    parameter_gradient_speedup: f64,
+    input_gradient_speedup: f64,
+    /// Lane time per point, ns (forward, parameter gradient, input gradient).
+    lane_ns_per_point: [f64; 3],
+}
+
+/// Times the three cpu hash-grid passes through the lane code and the scalar code, alternating
+/// within each round, and checks they agree bit for bit. None where the lane code does not run.
+fn grid_lanes(network: &str, cfg: &EncodingConfig, batch: usize, iters: usize) -> anyhow::Result<Option<GridLanes>> {
+    use crate::nn::encoding as enc;
+    use rand::Rng;
+    let (Some(g), true) = (enc::grid_geom(cfg), enc::hash_grid_lanes_available(cfg)) else {
+        return Ok(None);
+    };
+    let EncodingConfig::HashGrid { bound, .. } = *cfg else {
+        return Ok(None);
+    };
+    let np = cfg.num_params();
+    let mut rng = crate::util::rng(4);
+    let params: Vec<f32> = (0..np).map(|_| rng.random_range(-1e-2..1e-2)).collect();
+    let x: Vec<f32> = (0..batch * 3).map(|_| rng.random_range(-bound..bound)).collect();
+    let d_out: Vec<f32> = (0..batch * cfg.out_dim(3)).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let mut best = [[f64::INFINITY; 2]; 3];
+    for _ in 0..iters.max(2) {
+        let mut outs: [[Vec<f32>; 2]; 3] = Default::default();
+        for (pass, o) in outs.iter_mut().enumerate() {
+            for (lanes, out) in o.iter_mut().enumerate() {
+                let t = Instant::now();
+                *out = match (pass, lanes == 1) {
+                    (0, true) => enc::hash_grid_forward_cpu(cfg, &params, &x),
+                    (0, false) => enc::hash_grid_forward_scalar(&g, &params, &x),
+                    (1, true) => enc::hash_grid_backward_params_cpu(cfg, &x, &d_out),
+                    (1, false) => enc::hash_grid_backward_params_scalar(&g, np, &x, &d_out),
+                    (_, true) => enc::hash_grid_backward_x_cpu(cfg, &params, &x, &d_out),
+                    (_, false) => enc::hash_grid_backward_x_scalar(&g, &params, &x, &d_out),
+                };
+                best[pass][lanes] = best[pass][lanes].min(t.elapsed().as_secs_f64());
+            }
+        }
+        for (pass, [a, b]) in outs.iter().enumerate() {
+            if a.len() != b.len() || a.iter().zip(b).any(|(p, q)| p.to_bits() != q.to_bits()) {
+                anyhow::bail!("{network} hash grid, batch {batch}: the lane code and the scalar code disagree in pass {pass}");
+            }
+        }
+    }
+    let speedup = |p: usize| best[p][0] / best[p][1];
+    Ok(Some(GridLanes {
+        network: network.into(),
+        batch,
+        forward_speedup: speedup(0),
+        parameter_gradient_speedup: speedup(1),
+        input_gradient_speedup: speedup(2),
+        lane_ns_per_point: [0, 1, 2].map(|p| best[p][1] / batch as f64 * 1e9),
+    }))
+}
+
 #[derive(Debug, Clone, serde::Serialize)]
 struct Ratio {
     network: String,
@@ -341,6 +404,19 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
             }
         }
     }
+    let mut lanes = Vec::new();
+    for name in &args.networks {
+        let net = network(name)?;
+        for &batch in &args.batches {
+            if let Some(r) = grid_lanes(name, &net.encoding, batch, args.iters)? {
+                ctx.say(format!(
+                    "cpu hash grid, AVX2 lanes / scalar, {name} batch {batch}: forward {:.2}x, parameter gradient {:.2}x, input gradient {:.2}x (same bits)",
+                    r.forward_speedup, r.parameter_gradient_speedup, r.input_gradient_speedup
+                ));
+                lanes.push(r);
+            }
+        }
+    }
     let mut ratios = Vec::new();
     for g in rows.iter().filter(|r| r.backend == "wgpu") {
         if let Some(c) = rows
@@ -394,6 +470,7 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
         "wgpu_over_cpu": ratios,
         "cpu_vs_gemm_reference": cpu_vs_gemm,
         "launch_overhead": launch,
+        "cpu_hash_grid_lanes_over_scalar": lanes,
     });
     crate::util::atomic_write(&args.out, serde_json::to_string_pretty(&report)?.as_bytes())?;
     ctx.say(format!("wrote {}", args.out.display()));

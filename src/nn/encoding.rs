@@ -554,6 +554,16 @@ pub fn hash_grid_forward_cpu<T: Real>(cfg: &EncodingConfig, params: &[T], x: &[T
     hash_grid_forward_scalar(&g, params, x)
 }
 
+/// Whether the f32 hash grid of `cfg` runs the AVX2 lane code on this CPU (`bench nn` times it
+/// against the scalar twin).
+pub(crate) fn hash_grid_lanes_available(cfg: &EncodingConfig) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    if let Some(g) = grid_geom(cfg) {
+        return grid_avx2::available() && grid_avx2::suits(&g, cfg.num_params(), None);
+    }
+    false
+}
+
 /// The scalar hash grid forward (any [`Real`]; the reference of the AVX2 path).
 pub(crate) fn hash_grid_forward_scalar<T: Real>(g: &GridGeom, params: &[T], x: &[T]) -> Vec<T> {
     let od = g.levels.len() * g.f;
