@@ -198,7 +198,6 @@ unsafe fn lanes(v: __m256) -> [f32; LANES] {
     a
 }
 
-
 /// The forward of `super::hash_grid_forward_cpu` (f32, F = 2).
 ///
 /// Safety: the CPU has AVX2 ([`available`]); `g` and `params` pass [`suits`].
