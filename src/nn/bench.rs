@@ -354,6 +354,7 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
         }
     }
     let mut rows: Vec<Row> = Vec::new();
+    let mut lanes = Vec::new();
     let mut notes = serde_json::Map::new();
     ctx.say(format!(
         "{:<6} {:<60} {:>8} {:>14} {:>9} {:>14} {:>9}",
@@ -403,10 +404,6 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
                 rows.push(row);
             }
         }
-    }
-    let mut lanes = Vec::new();
-    for name in &args.networks {
-        let net = network(name)?;
         for &batch in &args.batches {
             if let Some(r) = grid_lanes(name, &net.encoding, batch, args.iters)? {
                 ctx.say(format!(

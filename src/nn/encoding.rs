@@ -512,6 +512,21 @@ pub(crate) struct GridGeom {
     bound: f64,
 }
 
+impl GridGeom {
+    /// A flat parameter-sized vector cut into its levels' tables (each level owns a disjoint
+    /// slice, so the levels' gradients can be scattered in parallel).
+    fn level_tables_mut<'a, T>(&self, flat: &'a mut [T]) -> Vec<&'a mut [T]> {
+        let mut tables = Vec::with_capacity(self.levels.len());
+        let mut rest = flat;
+        for lvl in &self.levels {
+            let (head, tail) = rest.split_at_mut(lvl.entries as usize * self.f);
+            tables.push(head);
+            rest = tail;
+        }
+        tables
+    }
+}
+
 pub(crate) fn grid_geom(cfg: &EncodingConfig) -> Option<GridGeom> {
     match *cfg {
         EncodingConfig::HashGrid {
@@ -628,14 +643,7 @@ pub(crate) fn hash_grid_backward_params_scalar<T: Real>(g: &GridGeom, num_params
     let od = g.levels.len() * g.f;
     let (bound, inv_2b) = (T::from_f64(g.bound), T::from_f64(0.5 / g.bound));
     let mut d_params = vec![T::default(); num_params];
-    let mut slices = Vec::with_capacity(g.levels.len());
-    let mut rest = d_params.as_mut_slice();
-    for lvl in &g.levels {
-        let (head, tail) = rest.split_at_mut(lvl.entries as usize * g.f);
-        slices.push(head);
-        rest = tail;
-    }
-    slices.into_par_iter().enumerate().for_each(|(l, dp)| {
+    g.level_tables_mut(&mut d_params).into_par_iter().enumerate().for_each(|(l, dp)| {
         let lvl = &g.levels[l];
         let base = lvl.offset as usize * g.f;
         for (xrow, dorow) in x.chunks_exact(3).zip(d_out.chunks_exact(od)) {

@@ -161,7 +161,7 @@ impl Corners8 {
     }
 }
 
-/// The 8 points of block `b`.
+/// Block `b` (8 rows) of a structure of arrays: the points' coordinates, or an accumulator's.
 #[inline(always)]
 unsafe fn load_points(soa: &Soa, b: usize) -> [__m256; 3] {
     [
@@ -181,7 +181,7 @@ unsafe fn gather_entry(table: &[f32], idx: __m256i) -> (__m256, __m256) {
     (_mm256_i32gather_ps::<4>(base, i2), _mm256_i32gather_ps::<4>(base.add(1), i2))
 }
 
-/// Feature `f` of level `l` in the `m` rows of a block of `d_out` rows (`od` wide), zeros past `m`.
+/// Column `col` of the first `m` rows (`od` wide) of `rows`, zeros past `m`.
 #[inline(always)]
 unsafe fn load_column(rows: &[f32], od: usize, col: usize, m: usize) -> __m256 {
     let mut v = [0.0f32; LANES];
@@ -252,14 +252,7 @@ pub(super) unsafe fn backward_params(g: &GridGeom, num_params: usize, x: &[f32],
     let (bound, inv_2b) = (g.bound as f32, (0.5 / g.bound) as f32);
     let soa = Soa::of(x);
     let mut d_params = vec![0.0f32; num_params];
-    let mut slices = Vec::with_capacity(g.levels.len());
-    let mut rest = d_params.as_mut_slice();
-    for lvl in &g.levels {
-        let (head, tail) = rest.split_at_mut(lvl.entries as usize * 2);
-        slices.push(head);
-        rest = tail;
-    }
-    slices.into_par_iter().enumerate().for_each(|(l, dp)| {
+    g.level_tables_mut(&mut d_params).into_par_iter().enumerate().for_each(|(l, dp)| {
         // SAFETY: as the function's.
         unsafe { backward_params_level(g, l, &soa, n, od, d_out, dp, bound, inv_2b) }
     });
