@@ -246,8 +246,9 @@ fn softplus<T: Real>(z: T, beta: T, inv_beta: T) -> T {
 
 /// Below `βz = −SOFTPLUS_FLOOR` softplus is 0 and its derivative σ(βz) is 0: their true values
 /// (under 2e-35 and 2e-35/β) would be subnormal, or become so in the next layer's products, and
-/// every operation on a subnormal costs a microcode assist (a network whose pre-activations
-/// reach that far, as a hash grid's can, ran its forward 1.5× slower).
+/// every operation on a subnormal costs a microcode assist (`bench nn`'s randomly initialised
+/// networks, whose pre-activations reach that far, ran their forward 3-10× and their
+/// forward+backward 6-20× slower).
 const SOFTPLUS_FLOOR: f64 = 80.0;
 
 /// σ(βz), softplus's derivative: 0 below `βz = −SOFTPLUS_FLOOR`, as [`softplus`] is.
@@ -584,7 +585,7 @@ fn exp_f32(x: f32) -> f32 {
 /// ≤ 1/3, whose odd series to `s¹³` is within 1.4e-8 relative (the next term, `s¹⁴/15`, is at
 /// most 9⁻⁷/15). No cancellation at small `e`, one division, and no exponent bits to pick apart.
 /// Below 1e-18, `ln(1 + e)` is `e` to f32 precision; the series then runs on 1e-18, so that no
-/// lane computes with subnormals (each costs a microcode assist: 1.5x slower on random inputs).
+/// lane computes with subnormals (see [`SOFTPLUS_FLOOR`]).
 #[inline(always)]
 fn ln_1p_f32(e: f32) -> f32 {
     const TINY: f32 = 1e-18;
