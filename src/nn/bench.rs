@@ -143,7 +143,6 @@ struct GridLanes {
 /// within each round, and checks they agree bit for bit. None where the lane code does not run.
 fn grid_lanes(network: &str, cfg: &EncodingConfig, batch: usize, iters: usize) -> anyhow::Result<Option<GridLanes>> {
     use crate::nn::encoding as enc;
-    use rand::Rng;
     let (Some(g), true) = (enc::grid_geom(cfg), enc::hash_grid_lanes_available(cfg)) else {
         return Ok(None);
     };
@@ -152,9 +151,9 @@ fn grid_lanes(network: &str, cfg: &EncodingConfig, batch: usize, iters: usize) -
     };
     let np = cfg.num_params();
     let mut rng = crate::util::rng(4);
-    let params: Vec<f32> = (0..np).map(|_| rng.random_range(-1e-2..1e-2)).collect();
-    let x: Vec<f32> = (0..batch * 3).map(|_| rng.random_range(-bound..bound)).collect();
-    let d_out: Vec<f32> = (0..batch * cfg.out_dim(3)).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let params = uniform(&mut rng, np, 1e-2);
+    let x = uniform(&mut rng, batch * 3, bound);
+    let d_out = uniform(&mut rng, batch * cfg.out_dim(3), 1.0);
     let mut best = [[f64::INFINITY; 2]; 3];
     for _ in 0..iters.max(2) {
         let mut outs: [[Vec<f32>; 2]; 3] = Default::default();
@@ -255,12 +254,9 @@ fn time_field(
     } else {
         sub.min(batch).max(1)
     };
-    let mut r = |n: usize| -> Vec<f32> {
-        (0..n)
-            .map(|_| rand::Rng::random_range(&mut rng, -1.0f32..1.0))
-            .collect()
-    };
-    let (pts, x, d_enc) = (r(batch * 3), r(sub * mlp.in_dim()), r(batch * enc_dim));
+    let pts = uniform(&mut rng, batch * 3, 1.0);
+    let x = uniform(&mut rng, sub * mlp.in_dim(), 1.0);
+    let d_enc = uniform(&mut rng, batch * enc_dim, 1.0);
     let dy = vec![1e-3f32; sub * mlp.out_dim()];
     let (pt, et, ptst, det) = (b.upload(&params), b.upload(&enc_params), b.upload(&pts), b.upload(&d_enc));
     // MLP inputs for sub-batches of `rows` points: full ones, and the shorter last one.
@@ -294,17 +290,18 @@ fn time_field(
     Ok((fwd, fb))
 }
 
+/// `n` numbers drawn uniformly from [−bound, bound): the benchmarks' inputs and parameters.
+fn uniform(rng: &mut impl rand::Rng, n: usize, bound: f32) -> Vec<f32> {
+    (0..n).map(|_| rng.random_range(-bound..bound)).collect()
+}
+
 /// GFLOP/s of a plain GEMM (`[rows, 512]·[512, 512]`, matrixmultiply's packed AVX/FMA kernels)
 /// split over rayon in 1024-row chunks: the "well-vectorised GEMM" the cpu MLP is compared with.
 fn gemm_reference_gflops(rows: usize, iters: usize) -> anyhow::Result<f64> {
     let (rows, k, n, chunk) = (rows.max(1), 512usize, 512usize, 1024usize);
     let mut rng = crate::util::rng(3);
-    let a: Vec<f32> = (0..rows * k)
-        .map(|_| rand::Rng::random_range(&mut rng, -1.0f32..1.0))
-        .collect();
-    let w: Vec<f32> = (0..k * n)
-        .map(|_| rand::Rng::random_range(&mut rng, -1.0f32..1.0))
-        .collect();
+    let a = uniform(&mut rng, rows * k, 1.0);
+    let w = uniform(&mut rng, k * n, 1.0);
     let mut c = vec![0f32; rows * n];
     let secs = best_of(iters.max(3) + 1, || {
         c.par_chunks_mut(chunk * n)
