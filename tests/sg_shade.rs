@@ -350,7 +350,7 @@ fn the_calibrated_brdf_keeps_a_full_reflectors_energy_and_attenuates_the_diffuse
             assert!((e - 1.0).abs() < 2e-3, "calibrated furnace at R {r}, n·v {cos_v}: {e}");
         }
     }
-    let (rough_physg, d_physg) = furnace(BrdfModel::Physg, 0.9, 0.5);
+    let (rough_physg, _) = furnace(BrdfModel::Physg, 0.9, 0.5);
     assert!(rough_physg < 0.8, "PhySG's furnace at R 0.9: {rough_physg}");
     assert!(furnace(BrdfModel::Physg, 0.9, 0.5).0 < furnace(BrdfModel::Physg, 0.3, 0.5).0, "PhySG loses more the rougher");
     // The diffuse keeps what the dielectric specular layer does not reflect: 1 − E(F0) of

@@ -143,16 +143,13 @@ struct GridLanes {
 /// within each round, and checks they agree bit for bit. None where the lane code does not run.
 fn grid_lanes(network: &str, cfg: &EncodingConfig, batch: usize, iters: usize) -> anyhow::Result<Option<GridLanes>> {
     use crate::nn::encoding as enc;
-    let (Some(g), true) = (enc::grid_geom(cfg), enc::hash_grid_lanes_available(cfg)) else {
-        return Ok(None);
-    };
-    let EncodingConfig::HashGrid { bound, .. } = *cfg else {
+    let Some(g) = enc::hash_grid_lanes(cfg) else {
         return Ok(None);
     };
     let np = cfg.num_params();
     let mut rng = crate::util::rng(4);
     let params = uniform(&mut rng, np, 1e-2);
-    let x = uniform(&mut rng, batch * 3, bound);
+    let x = uniform(&mut rng, batch * 3, g.bound());
     let d_out = uniform(&mut rng, batch * cfg.out_dim(3), 1.0);
     let mut best = [[f64::INFINITY; 2]; 3];
     for _ in 0..iters.max(2) {

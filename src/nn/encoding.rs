@@ -513,6 +513,11 @@ pub(crate) struct GridGeom {
 }
 
 impl GridGeom {
+    /// Half-size of the cube `[-bound, bound]^3` the grid covers (as configured, f32).
+    pub(crate) fn bound(&self) -> f32 {
+        self.bound as f32
+    }
+
     /// A flat parameter-sized vector cut into its levels' tables (each level owns a disjoint
     /// slice, so the levels' gradients can be scattered in parallel).
     fn level_tables_mut<'a, T>(&self, flat: &'a mut [T]) -> Vec<&'a mut [T]> {
@@ -569,14 +574,16 @@ pub fn hash_grid_forward_cpu<T: Real>(cfg: &EncodingConfig, params: &[T], x: &[T
     hash_grid_forward_scalar(&g, params, x)
 }
 
-/// Whether the f32 hash grid of `cfg` runs the AVX2 lane code on this CPU (`bench nn` times it
-/// against the scalar twin).
-pub(crate) fn hash_grid_lanes_available(cfg: &EncodingConfig) -> bool {
+/// The grid of `cfg` where its f32 twins run the AVX2 lane code on this CPU, None elsewhere
+/// (`bench nn` times the lane code against the scalar twin on it).
+pub(crate) fn hash_grid_lanes(cfg: &EncodingConfig) -> Option<GridGeom> {
     #[cfg(target_arch = "x86_64")]
     if let Some(g) = grid_geom(cfg) {
-        return grid_avx2::available() && grid_avx2::suits(&g, cfg.num_params(), None);
+        if grid_avx2::available() && grid_avx2::suits(&g, cfg.num_params(), None) {
+            return Some(g);
+        }
     }
-    false
+    None
 }
 
 /// The scalar hash grid forward (any [`Real`]; the reference of the AVX2 path).
