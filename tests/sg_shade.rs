@@ -352,7 +352,7 @@ fn the_calibrated_brdf_keeps_a_full_reflectors_energy_and_attenuates_the_diffuse
     }
     let (rough_physg, _) = furnace(BrdfModel::Physg, 0.9, 0.5);
     assert!(rough_physg < 0.8, "PhySG's furnace at R 0.9: {rough_physg}");
-    assert!(furnace(BrdfModel::Physg, 0.9, 0.5).0 < furnace(BrdfModel::Physg, 0.3, 0.5).0, "PhySG loses more the rougher");
+    assert!(rough_physg < furnace(BrdfModel::Physg, 0.3, 0.5).0, "PhySG loses more the rougher");
     // The diffuse keeps what the dielectric specular layer does not reflect: 1 − E(F0) of
     // PhySG's (which ignores it), E the energy Cycles' GGX reflects (`ggx_energy`: the lobe's
     // directional albedo F0·A + B of Karis' fit, with multiple scattering): about F0 head-on,
