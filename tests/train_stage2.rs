@@ -647,6 +647,22 @@ fn tiny_sdf() -> pii_bake::train::stage1::Model {
     pii_bake::train::stage1::Model::new(&cfg).unwrap()
 }
 
+/// The tiny model with `--refine-geometry` that the geometry gradient checks differentiate.
+fn refined_geometry_cfg(indirect: IndirectMode) -> Stage2Config {
+    let mut cfg = tiny(indirect, DecoderMode::Separate);
+    // PE2 material: PE10's 2^9 frequency would make the loss too wiggly along the ray for
+    // central differences at any one step.
+    cfg.material_encoding = pii_bake::nn::field::FieldEncoding::Frequency { n_freqs: 2 };
+    // PhySG's form: the calibrated one makes this tiny SDF's loss too rough at the central
+    // differences' scale (one-sided differences of ±0.2–0.4 at 3e-5 against a gradient of
+    // 5e-3); its normal gradient is checked where the shading is formed
+    // (`roughness_light_and_normal_gradients_match_central_differences_in_both_brdf_forms`).
+    cfg.brdf = pii_bake::sg::shade::BrdfModel::Physg;
+    cfg.refine_geometry = true;
+    cfg.geometry_eikonal_points = 8;
+    cfg
+}
+
 #[test]
 fn refined_geometry_gradient_matches_central_differences() {
     // --refine-geometry: the SDF's gradient through the moved surface points, the shading normals,
@@ -656,17 +672,7 @@ fn refined_geometry_gradient_matches_central_differences() {
     let sdf = tiny_sdf();
     let w = Stage2Weights { smooth: 0.0, sigma: 0.3, kl: 0.0, rho: 0.05 };
     for boundary in [BoundaryMode::Flowing, BoundaryMode::Detached] {
-        let mut cfg = tiny(IndirectMode::Ours, DecoderMode::Separate);
-        // PE2 material: PE10's 2^9 frequency would make the loss too wiggly along the ray for
-        // central differences at any one step.
-        cfg.material_encoding = pii_bake::nn::field::FieldEncoding::Frequency { n_freqs: 2 };
-        // PhySG's form: the calibrated one makes this tiny SDF's loss too rough at the central
-        // differences' scale (one-sided differences of ±0.2–0.4 at 3e-5 against a gradient of
-        // 5e-3); its normal gradient is checked where the shading is formed
-        // (`roughness_light_and_normal_gradients_match_central_differences_in_both_brdf_forms`).
-        cfg.brdf = pii_bake::sg::shade::BrdfModel::Physg;
-        cfg.refine_geometry = true;
-        cfg.geometry_eikonal_points = 8;
+        let mut cfg = refined_geometry_cfg(IndirectMode::Ours);
         cfg.boundary = boundary;
         let model = Stage2Model::new(&cfg).unwrap();
         let mut bb = boundary_batch(&model);
@@ -741,12 +747,7 @@ fn refined_geometry_ray_move_gradient_matches_central_differences() {
         assert!((q - p - 0.01).abs() < 1e-5, "the last SDF parameter is not the output offset: {p} -> {q}");
     }
     let w = Stage2Weights { smooth: 0.0, sigma: 0.3, kl: 0.0, rho: 0.05 };
-    let mut cfg = tiny(IndirectMode::None, DecoderMode::Separate);
-    cfg.material_encoding = pii_bake::nn::field::FieldEncoding::Frequency { n_freqs: 2 };
-    cfg.brdf = pii_bake::sg::shade::BrdfModel::Physg;
-    cfg.refine_geometry = true;
-    cfg.geometry_eikonal_points = 8;
-    let model = Stage2Model::new(&cfg).unwrap();
+    let model = Stage2Model::new(&refined_geometry_cfg(IndirectMode::None)).unwrap();
     let bb = batch();
     let g = loss_and_grad_geometry(&b, &model, &bb, &w, 7, &sdf).unwrap();
     let fd = symmetric_slope(
