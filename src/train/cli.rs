@@ -407,6 +407,46 @@ pub fn interrupt_flag() -> Arc<AtomicBool> {
     .clone()
 }
 
+/// When a training loop writes its checkpoint (and loss curve), and how it stops on Ctrl-C: one
+/// rule for stage 1 and stage 2, so a killed run loses at most `every` steps and an interrupted
+/// one says how to go on.
+pub(crate) struct CheckpointRule {
+    pub stop: Arc<AtomicBool>,
+    /// Steps between checkpoints.
+    pub every: u64,
+    /// The step this invocation stops at (a checkpoint is written there too).
+    pub end: u64,
+    /// The run's whole length, for the interruption message.
+    pub iterations: u64,
+    /// What a step is called in the message ("step", "stage-2 step").
+    pub step_name: &'static str,
+    pub checkpoint: PathBuf,
+    /// The command that continues the run.
+    pub resume: String,
+}
+
+impl CheckpointRule {
+    /// After step `step`: `save` when a checkpoint is due (the interval, the end, Ctrl-C); after
+    /// Ctrl-C the progress bar is left as it is and the error names the checkpoint and `resume`.
+    pub(crate) fn after_step(&self, step: u64, pb: &indicatif::ProgressBar, save: impl FnOnce() -> anyhow::Result<()>) -> anyhow::Result<()> {
+        let interrupted = self.stop.load(Ordering::SeqCst);
+        if step % self.every == 0 || step == self.end || interrupted {
+            save()?;
+        }
+        if interrupted {
+            pb.abandon();
+            anyhow::bail!(
+                "interrupted at {} {step} of {}: checkpoint written to {}; continue with `{}`",
+                self.step_name,
+                self.iterations,
+                self.checkpoint.display(),
+                self.resume
+            );
+        }
+        Ok(())
+    }
+}
+
 /// The lines of a loss-curve CSV up to step `upto` (a resumed run keeps them), read within `max_bytes`.
 pub(crate) fn read_curve(path: &Path, upto: u64, max_bytes: u64) -> Vec<String> {
     crate::util::read_text_bounded(path, max_bytes)
@@ -723,7 +763,6 @@ pub fn train_stage1(
         cfg.sizes.mesh_resolution
     ));
 
-    let stop = interrupt_flag();
     let pb = training_progress(ctx, cfg.iterations, "stage 1");
     pb.set_position(trainer.step);
     let t_loop = Instant::now();
@@ -731,6 +770,20 @@ pub fn train_stage1(
     let costs = StepCosts::start(backend);
     let mut last = StepStats::default();
     let end = stop_at.unwrap_or(cfg.iterations).min(cfg.iterations);
+    let rule = CheckpointRule {
+        stop: interrupt_flag(),
+        every: cfg.checkpoint_every,
+        end,
+        iterations: cfg.iterations,
+        step_name: "step",
+        checkpoint: run_dir.join(CHECKPOINT),
+        resume: format!("pii-bake train {} --out {} --resume", scene_path.display(), run_dir.display()),
+    };
+    let save = |trainer: &mut Trainer, curve: &[String]| -> anyhow::Result<()> {
+        trainer.save(run_dir, &key)?;
+        write_curve(&run_dir.join(LOSS_CURVE), CURVE_HEADER, curve)?;
+        Ok(())
+    };
     while trainer.step < end {
         let ts = Instant::now();
         let s = trainer.train_step(backend, &data)?;
@@ -752,27 +805,11 @@ pub fn train_stage1(
         }
         ctx.emit("progress", serde_json::json!({ "stage": "geometry", "iterations": cfg.iterations, "it_per_s": its, "skipped": trainer.skipped, "stats": s }));
         last = s;
-        let interrupted = stop.load(Ordering::SeqCst);
-        if trainer.step % cfg.checkpoint_every == 0 || trainer.step == end || interrupted {
-            trainer.save(run_dir, &key)?;
-            write_curve(&run_dir.join(LOSS_CURVE), CURVE_HEADER, &curve)?;
-        }
-        if interrupted {
-            pb.abandon();
-            anyhow::bail!(
-                "interrupted at step {} of {}: checkpoint written to {}; continue with `pii-bake train {} --out {} --resume`",
-                trainer.step,
-                cfg.iterations,
-                run_dir.join(CHECKPOINT).display(),
-                scene_path.display(),
-                run_dir.display()
-            );
-        }
+        rule.after_step(trainer.step, &pb, || save(&mut trainer, &curve))?;
     }
     pb.finish_and_clear();
     if trainer.step == step0 {
-        trainer.save(run_dir, &key)?;
-        write_curve(&run_dir.join(LOSS_CURVE), CURVE_HEADER, &curve)?;
+        save(&mut trainer, &curve)?;
     }
     let seconds_train = t_loop.elapsed().as_secs_f64();
     let its = (trainer.step - step0) as f64 / seconds_train.max(1e-9);

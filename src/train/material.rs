@@ -5,7 +5,6 @@
 //! field, the learned environment).
 
 use std::path::Path;
-use std::sync::atomic::Ordering;
 use std::time::Instant;
 
 use anyhow::Context as _;
@@ -515,7 +514,6 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         cfg.secondary_rays_per_batch()
     ));
 
-    let stop = super::cli::interrupt_flag();
     let pb = training_progress(ctx, cfg.iterations, "stage 2");
     pb.set_position(trainer.step);
     let t_loop = Instant::now();
@@ -523,6 +521,20 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
     let costs = super::cli::StepCosts::start(backend);
     let mut step_backend = StepBackend::new(backend, ctx, &cfg);
     let end = stop_at.unwrap_or(cfg.iterations).min(cfg.iterations);
+    let rule = super::cli::CheckpointRule {
+        stop: super::cli::interrupt_flag(),
+        every: cfg.checkpoint_every,
+        end,
+        iterations: cfg.iterations,
+        step_name: "stage-2 step",
+        checkpoint: run_dir.join(CHECKPOINT2),
+        resume: format!("pii-bake train {} --out {} --stage material --resume", scene_path.display(), run_dir.display()),
+    };
+    let save = |trainer: &Stage2Trainer, cache: &SurfaceCache, geom: &Stage1Model, curve: &[String]| -> anyhow::Result<()> {
+        trainer.save_with(run_dir, &key, &cache.traced_axes, Some(geom))?;
+        write_curve(&run_dir.join(CURVE2), CURVE2_HEADER, curve)?;
+        Ok(())
+    };
     let mut last = Stage2Stats::default();
     let mut retrace_s = 0.0;
     while trainer.step < end {
@@ -546,27 +558,11 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         pb.set_message(format!("loss {:.4} (rgb {:.4} smooth {:.4} kl {:.4}) psnr {:.1} {:.2} it/s", s.loss, s.rgb, s.smooth, s.kl, s.psnr, its));
         ctx.emit("progress", serde_json::json!({ "stage": "material", "iterations": cfg.iterations, "it_per_s": its, "skipped": trainer.skipped, "stats": s }));
         last = s;
-        let interrupted = stop.load(Ordering::SeqCst);
-        if trainer.step % cfg.checkpoint_every == 0 || trainer.step == end || interrupted {
-            trainer.save_with(run_dir, &key, &cache.traced_axes, Some(&geom))?;
-            write_curve(&run_dir.join(CURVE2), CURVE2_HEADER, &curve)?;
-        }
-        if interrupted {
-            pb.abandon();
-            anyhow::bail!(
-                "interrupted at stage-2 step {} of {}: checkpoint written to {}; continue with `pii-bake train {} --out {} --stage material --resume`",
-                trainer.step,
-                cfg.iterations,
-                run_dir.join(CHECKPOINT2).display(),
-                scene_path.display(),
-                run_dir.display()
-            );
-        }
+        rule.after_step(trainer.step, &pb, || save(&trainer, &cache, &geom, &curve))?;
     }
     pb.finish_and_clear();
     if trainer.step == step0 {
-        trainer.save_with(run_dir, &key, &cache.traced_axes, Some(&geom))?;
-        write_curve(&run_dir.join(CURVE2), CURVE2_HEADER, &curve)?;
+        save(&trainer, &cache, &geom, &curve)?;
     }
     let seconds_train = t_loop.elapsed().as_secs_f64();
     let its = (trainer.step - step0) as f64 / seconds_train.max(1e-9);
