@@ -434,10 +434,7 @@ fn reachable_from_outside(inside: &[bool], voted: &[bool], res: usize) -> Vec<bo
     let mut seen = vec![false; inside.len()];
     let mut stack: Vec<usize> = Vec::new();
     for id in 0..inside.len() {
-        if !inside[id] {
-            seen[id] = true;
-            stack.push(id);
-        } else if voted[id] && on_border(id, res) {
+        if !inside[id] || (voted[id] && on_border(id, res)) {
             seen[id] = true;
             stack.push(id);
         }
@@ -501,7 +498,7 @@ fn majority_filter(inside: &mut [bool], hull: &[bool], res: usize) -> usize {
     let mut restored = 0;
     for id in 0..inside.len() {
         // Only where carving happened (voxels of the hull within one step of a carved one).
-        if !hull[id] || !(!prev[id] || neighbours26(id, res).any(|n| hull[n] && !prev[n])) {
+        if !hull[id] || (prev[id] && !neighbours26(id, res).any(|n| hull[n] && !prev[n])) {
             continue;
         }
         let occ = neighbours26(id, res).filter(|&n| prev[n]).count();
