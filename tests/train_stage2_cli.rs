@@ -236,6 +236,13 @@ fn stage_two_bad_inputs_give_clear_errors() {
     assert!(text(&o).contains("checkpoint.safetensors") && text(&o).contains("fast preset, not paper"), "{}", text(&o));
     assert!(!run.join("material.safetensors").exists());
 
+    // A checkpoint interval of 0 is refused before training (it used to panic at the first step's
+    // checkpoint rule, dividing by it).
+    let o = stage2(&run, &["--material-iterations", "1", "--material-set", "checkpoint_every=0"]);
+    assert_eq!(o.status.code(), Some(1), "{}", text(&o));
+    assert!(text(&o).contains("checkpoint_every must be > 0") && !text(&o).contains("panicked"), "{}", text(&o));
+    assert!(!run.join("material.safetensors").exists());
+
     // Relight without a stage-2 run, with a map that is not a latlong HDR, into an unwritable folder.
     let rel = dir.path().join("rel");
     let env = example().join("env/sunset.exr");

@@ -510,6 +510,9 @@ impl Stage2Config {
         if self.batch == 0 || self.points == 0 || self.latent_dim == 0 {
             return bad("batch, points and latent size must be > 0");
         }
+        if self.checkpoint_every == 0 {
+            return bad("checkpoint_every must be > 0");
+        }
         let lrs = [self.lr_material, self.lr_light, self.lr_indirect, self.lr_final_factor, self.axis_lr_factor];
         if lrs.iter().any(|v| !(v.is_finite() && *v >= 0.0)) {
             return bad("learning rates must be finite and >= 0");
