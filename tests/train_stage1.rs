@@ -1104,3 +1104,35 @@ fn a_carve_grown_by_a_voxel_changes_more_than_its_surface_and_grown_by_less_chan
     assert!((1.0..2.0).contains(&one), "{one}");
     assert!(little > 0.0 && little < 0.35 * one, "{little} against {one}");
 }
+
+/// Every setting `--geometry-set` can give a nonsensical value is refused before training, naming
+/// it: a negative loss weight, a fraction of the run outside [0, 1], a zero sharpness (each used
+/// to train on, or, for a negative eikonal weight, to fail later with a message about the hull fit).
+#[test]
+fn nonsensical_geometry_settings_are_refused_by_name() {
+    let base = Stage1Config::for_scene(Preset::Fast, TraceMode::Refined, InitMode::Hull, &[], 0, 1);
+    base.validate().expect("the preset is valid");
+    for (key, value) in [
+        ("eikonal_weight", "-1"),
+        ("mask_weight", "-1"),
+        ("smoothness_weight", "-0.5"),
+        ("near_surface_sigma", "-1"),
+        ("pose_lr", "-1"),
+        ("alpha_init", "0"),
+        ("lr_final_factor", "-1"),
+        ("lr_final_factor", "2"),
+        ("coarse_levels", "1e30"),
+        ("coarse_to_fine_end", "-1"),
+        ("foreground_fraction", "1.5"),
+        ("radiance_warmup", "1"),
+        ("alpha_doublings", "[0.5, 2.0]"),
+        ("checkpoint_every", "0"),
+    ] {
+        let e = pii_bake::train::stage1::apply_overrides(base.clone(), &[format!("{key}={value}")]).expect_err(&format!("{key}={value} must be refused"));
+        assert!(e.to_string().contains(key), "{key}={value}: {e}");
+    }
+    // Zero switches a term off and stays allowed.
+    for key in ["eikonal_weight", "mask_weight", "smoothness_weight", "pose_lr", "radiance_warmup", "coarse_to_fine_end"] {
+        pii_bake::train::stage1::apply_overrides(base.clone(), &[format!("{key}=0")]).unwrap_or_else(|e| panic!("{key}=0: {e}"));
+    }
+}

@@ -1198,3 +1198,31 @@ fn the_balance_moves_light_and_albedo_together_and_is_checkpointed() {
     v.as_object_mut().unwrap().remove("balance_lr_factor");
     assert!(!serde_json::from_value::<Stage2Config>(v).unwrap().learns_balance());
 }
+
+/// Every setting `--material-set` can give a nonsensical value is refused before training, naming
+/// it (each used to train on; a checkpoint interval of 0 panicked at the first step).
+#[test]
+fn nonsensical_material_settings_are_refused_by_name() {
+    let base = Stage2Config::new(Preset::Fast, 1000);
+    base.validate().expect("the preset is valid");
+    for (key, value) in [
+        ("checkpoint_every", "0"),
+        ("smooth_weight", "-1"),
+        ("smooth_sigma", "-1"),
+        ("kl_weight", "-1"),
+        ("mii_weight", "-1"),
+        ("balance_lr_factor", "-1"),
+        ("retrace_degrees", "-1"),
+        ("normal_step_factor", "0"),
+        ("secondary_offset", "-1"),
+        ("secondary_offset", "1e30"),
+        ("secondary_threshold", "0"),
+        ("lr_final_factor", "1e30"),
+    ] {
+        let e = pii_bake::train::stage2::apply_overrides(base.clone(), &[format!("{key}={value}")]).expect_err(&format!("{key}={value} must be refused"));
+        assert!(e.to_string().contains(key), "{key}={value}: {e}");
+    }
+    for key in ["smooth_weight", "kl_weight", "balance_lr_factor", "retrace_degrees", "lr_final_factor"] {
+        pii_bake::train::stage2::apply_overrides(base.clone(), &[format!("{key}=0")]).unwrap_or_else(|e| panic!("{key}=0: {e}"));
+    }
+}

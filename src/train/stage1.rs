@@ -501,7 +501,7 @@ impl Stage1Config {
             return bad("learning rates must be > 0 (lr_field >= 0: 0 keeps the geometry as initialised)");
         }
         if self.checkpoint_every == 0 {
-            return bad("checkpoint interval must be > 0");
+            return bad("checkpoint_every (the checkpoint interval, --checkpoint-every) must be > 0");
         }
         if !(self.grazing_cos.is_finite() && (0.0..1.0).contains(&self.grazing_cos)) {
             return bad("grazing_cos must be in [0, 1)");
@@ -526,6 +526,31 @@ impl Stage1Config {
         }
         if !(self.pose_recarve_at.is_finite() && (0.0..1.0).contains(&self.pose_recarve_at)) {
             return bad("pose_recarve_at must be in [0, 1) (a fraction of the iterations; 0: never)");
+        }
+        let non_negative = [
+            ("eikonal_weight", self.eikonal_weight),
+            ("mask_weight", self.mask_weight),
+            ("smoothness_weight", self.smoothness_weight),
+            ("near_surface_sigma", self.near_surface_sigma),
+            ("pose_lr", self.pose_lr),
+        ];
+        if let Some((name, _)) = non_negative.iter().find(|(_, v)| !(v.is_finite() && *v >= 0.0)) {
+            return bad(&format!("{name} must be finite and >= 0"));
+        }
+        if !(self.alpha_init.is_finite() && self.alpha_init > 0.0) {
+            return bad("alpha_init (the mask loss's sharpness) must be finite and > 0");
+        }
+        let fractions = [
+            ("lr_final_factor", self.lr_final_factor),
+            ("coarse_levels", self.coarse_levels),
+            ("coarse_to_fine_end", self.coarse_to_fine_end),
+            ("foreground_fraction", self.foreground_fraction),
+        ];
+        if let Some((name, _)) = fractions.iter().find(|(_, v)| !(0.0..=1.0).contains(v)) {
+            return bad(&format!("{name} must be in [0, 1]"));
+        }
+        if !(0.0..1.0).contains(&self.radiance_warmup) || self.alpha_doublings.iter().any(|d| !(0.0..=1.0).contains(d)) {
+            return bad("radiance_warmup must be in [0, 1) and every alpha_doublings entry in [0, 1] (fractions of the iterations)");
         }
         Ok(())
     }

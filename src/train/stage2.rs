@@ -532,6 +532,27 @@ impl Stage2Config {
         if self.refine_geometry && self.geometry_retrace_every == 0 {
             return bad("geometry_retrace_every must be > 0");
         }
+        let non_negative = [
+            ("smooth_weight", self.smooth_weight),
+            ("smooth_sigma", self.smooth_sigma),
+            ("kl_weight", self.kl_weight),
+            ("mii_weight", self.mii_weight),
+            ("balance_lr_factor", self.balance_lr_factor),
+            ("retrace_degrees", self.retrace_degrees),
+        ];
+        if let Some((name, _)) = non_negative.iter().find(|(_, v)| !(v.is_finite() && *v >= 0.0)) {
+            return bad(&format!("{name} must be finite and >= 0"));
+        }
+        if !(0.0..=1.0).contains(&self.lr_final_factor) {
+            return bad("lr_final_factor (the rate at the end over the start) must be in [0, 1]");
+        }
+        if !(self.normal_step_factor.is_finite() && self.normal_step_factor > 0.0) {
+            return bad("normal_step_factor must be finite and > 0");
+        }
+        // Normalised units: the object lies inside the unit sphere.
+        if !(self.secondary_offset > 0.0 && self.secondary_offset < 1.0 && self.secondary_threshold > 0.0 && self.secondary_threshold < 1.0) {
+            return bad("secondary_offset and secondary_threshold must be in (0, 1) (normalised units)");
+        }
         Ok(())
     }
 
