@@ -534,7 +534,7 @@ impl Stage1Config {
             ("near_surface_sigma", self.near_surface_sigma),
             ("pose_lr", self.pose_lr),
         ];
-        if let Some((name, _)) = non_negative.iter().find(|(_, v)| !(v.is_finite() && *v >= 0.0)) {
+        if let Some(name) = first_failing(&non_negative, |v| v.is_finite() && v >= 0.0) {
             return bad(&format!("{name} must be finite and >= 0"));
         }
         if !(self.alpha_init.is_finite() && self.alpha_init > 0.0) {
@@ -546,7 +546,7 @@ impl Stage1Config {
             ("coarse_to_fine_end", self.coarse_to_fine_end),
             ("foreground_fraction", self.foreground_fraction),
         ];
-        if let Some((name, _)) = fractions.iter().find(|(_, v)| !(0.0..=1.0).contains(v)) {
+        if let Some(name) = first_failing(&fractions, |v| (0.0..=1.0).contains(&v)) {
             return bad(&format!("{name} must be in [0, 1]"));
         }
         if !(0.0..1.0).contains(&self.radiance_warmup) || self.alpha_doublings.iter().any(|d| !(0.0..=1.0).contains(d)) {
@@ -686,6 +686,11 @@ pub fn apply_overrides(cfg: Stage1Config, overrides: &[String]) -> Result<Stage1
     let out = override_fields(cfg, overrides)?;
     out.validate()?;
     Ok(out)
+}
+
+/// The name of the first `(name, value)` setting that `ok` refuses (a config's `validate` names it).
+pub(crate) fn first_failing(settings: &[(&'static str, f32)], ok: impl Fn(f32) -> bool) -> Option<&'static str> {
+    settings.iter().find(|(_, v)| !ok(*v)).map(|(name, _)| *name)
 }
 
 /// `KEY=VALUE` overrides of any serialisable config's top-level fields (VALUE parsed as JSON, else

@@ -540,7 +540,7 @@ impl Stage2Config {
             ("balance_lr_factor", self.balance_lr_factor),
             ("retrace_degrees", self.retrace_degrees),
         ];
-        if let Some((name, _)) = non_negative.iter().find(|(_, v)| !(v.is_finite() && *v >= 0.0)) {
+        if let Some(name) = super::stage1::first_failing(&non_negative, |v| v.is_finite() && v >= 0.0) {
             return bad(&format!("{name} must be finite and >= 0"));
         }
         if !(0.0..=1.0).contains(&self.lr_final_factor) {
