@@ -200,3 +200,57 @@ fn the_host_time_of_buffers_bind_groups_and_submissions_is_counted() {
     assert!((per.bind_group_seconds - (c3.bind_group_seconds - c0.bind_group_seconds) / 2.0).abs() < 1e-12);
     drop(z);
 }
+
+#[test]
+fn freed_buffers_are_reused_zeroed_and_only_after_the_commands_that_used_them() {
+    // A context of its own: the counters below are this test's alone.
+    let g = gpu();
+    let n = 1000;
+    let ones = g.upload_f32("ones", &vec![1.0f32; n]);
+    let a = g.zeros_f32("a", n);
+    util_kernels::axpy(&g, 3.0, &ones, &a).unwrap();
+    assert!(g.read_f32(&a).unwrap().iter().all(|&v| v == 3.0));
+    // y ← a is queued, not yet on the device, when `a` is dropped and its buffer handed out
+    // again: the new owner's zero fill must come after that launch has read it.
+    let y = g.zeros_f32("y", n);
+    util_kernels::axpy(&g, 1.0, &a, &y).unwrap();
+    drop(a);
+    let c0 = g.counters();
+    let b = g.zeros_f32("b", n);
+    let c1 = g.counters();
+    assert_eq!((c1.buffers - c0.buffers, c1.reused_buffers - c0.reused_buffers), (0.0, 1.0), "a's buffer is reused, none made");
+    util_kernels::axpy(&g, 1.0, &ones, &b).unwrap();
+    let out = g.read_many::<f32>(&[&y, &b]).unwrap();
+    assert!(out[0].iter().all(|&v| v == 3.0), "the queued launch read a's contents, not the new owner's: {:?}", &out[0][..4]);
+    assert!(out[1].iter().all(|&v| v == 1.0), "the reused buffer was zeroed first: {:?}", &out[1][..4]);
+
+    // Within one batch: a buffer whose handle is dropped before the batch is queued stays the
+    // batch's until it is recorded, so a buffer made meanwhile is not it.
+    let src = pii_bake::backend::gpu::shaders::with_lib(pii_bake::backend::gpu::shaders::UTIL);
+    let k = g.kernel("util", &src, "axpy", &KernelSpec::new(true, &[Access::Read, Access::ReadWrite])).unwrap();
+    let p = util_kernels::AxpyParams { n: n as u32, a: 5.0, _pad: [0; 2] };
+    let mut batch = g.batch("pool");
+    let out2 = g.zeros_f32("out2", n);
+    {
+        let t = g.zeros_f32("t", n);
+        batch.dispatch(&k, Some(bytemuck::bytes_of(&p)), &[(&ones).into(), (&t).into()], groups_1d(n, 256)).unwrap();
+        batch.dispatch(&k, Some(bytemuck::bytes_of(&p)), &[(&t).into(), (&out2).into()], groups_1d(n, 256)).unwrap();
+    }
+    let c = g.zeros_f32("c", n);
+    batch.submit().unwrap();
+    util_kernels::axpy(&g, 1.0, &ones, &c).unwrap();
+    let out = g.read_many::<f32>(&[&out2, &c]).unwrap();
+    assert!(out[0].iter().all(|&v| v == 25.0), "t = 5, out2 = 5·t: {:?}", &out[0][..4]);
+    assert!(out[1].iter().all(|&v| v == 1.0), "c is zero, then one: not the batch's t: {:?}", &out[1][..4]);
+
+    // A buffer of a larger size class than asked reads back as exactly its elements, and a
+    // second readback of the same size reuses the first's staging buffer.
+    let d = g.upload_f32("d", &[2.0f32; 7]);
+    let e = g.zeros_f32("e", 7);
+    util_kernels::axpy(&g, 1.0, &d, &e).unwrap();
+    assert_eq!(g.read_f32(&e).unwrap(), vec![2.0; 7]);
+    let r0 = g.counters();
+    assert_eq!(g.read_f32(&e).unwrap(), vec![2.0; 7]);
+    let r1 = g.counters();
+    assert_eq!((r1.buffers - r0.buffers, r1.reused_buffers - r0.reused_buffers), (0.0, 1.0));
+}
