@@ -253,4 +253,19 @@ fn freed_buffers_are_reused_zeroed_and_only_after_the_commands_that_used_them() 
     assert_eq!(g.read_f32(&e).unwrap(), vec![2.0; 7]);
     let r1 = g.counters();
     assert_eq!((r1.buffers - r0.buffers, r1.reused_buffers - r0.reused_buffers), (0.0, 1.0));
+
+    // An upload into a recycled buffer is a copy in the command stream: it lands after the
+    // queued launch that read the buffer's earlier contents, and without a submission.
+    let m = 3000;
+    let u = g.upload_f32("u", &vec![1.0f32; m]);
+    let y2 = g.zeros_f32("y2", m);
+    util_kernels::axpy(&g, 1.0, &u, &y2).unwrap();
+    drop(u);
+    let u0 = g.counters();
+    let v = g.upload_f32("v", &vec![9.0f32; m]);
+    let u1 = g.counters();
+    assert_eq!((u1.buffers - u0.buffers, u1.reused_buffers - u0.reused_buffers, u1.submits - u0.submits), (0.0, 1.0, 0.0));
+    let out = g.read_many::<f32>(&[&y2, &v]).unwrap();
+    assert!(out[0].iter().all(|&x| x == 1.0), "the queued launch read u's contents: {:?}", &out[0][..4]);
+    assert!(out[1].iter().all(|&x| x == 9.0), "v holds its upload: {:?}", &out[1][..4]);
 }

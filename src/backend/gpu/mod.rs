@@ -14,8 +14,6 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-use wgpu::util::DeviceExt;
-
 use super::{BackendError, NO_ADAPTER_HINT};
 
 /// Options for creating a [`GpuContext`].
@@ -251,6 +249,8 @@ pub struct GpuContext {
     /// The uniform arena (see [`Pending`]) and its offset alignment.
     arena: wgpu::Buffer,
     uniform_align: usize,
+    /// The upload arena (see [`GpuContext::upload`]).
+    upload_arena: wgpu::Buffer,
     /// Whether dispatches are recorded for the kernel profile (read without the `pending` lock
     /// by every launch).
     profiling: std::sync::atomic::AtomicBool,
@@ -313,7 +313,7 @@ enum Command {
         /// timed.
         profiled: Option<String>,
     },
-    Copy { src: wgpu::Buffer, dst: wgpu::Buffer, size: u64 },
+    Copy { src: wgpu::Buffer, src_offset: u64, dst: wgpu::Buffer, size: u64 },
     /// Zero the first `size` bytes of a recycled buffer.
     Clear { buffer: wgpu::Buffer, size: u64 },
 }
@@ -359,9 +359,9 @@ impl Command {
                 pass.set_bind_group(0, bind_group, if uniform.is_some() { &offsets[..] } else { &[] });
                 pass.dispatch_workgroups(groups[0], groups[1], groups[2]);
             }
-            Command::Copy { src, dst, size } => {
+            Command::Copy { src, src_offset, dst, size } => {
                 *pass = None;
-                enc.copy_buffer_to_buffer(src, 0, dst, 0, *size)
+                enc.copy_buffer_to_buffer(src, *src_offset, dst, 0, *size)
             }
             Command::Clear { buffer, size } => {
                 *pass = None;
@@ -387,12 +387,18 @@ struct Pending {
     encoder: Option<wgpu::CommandEncoder>,
     batches: usize,
     uniforms: Vec<u8>,
+    /// What the open encoder's copies into recycled upload buffers read from the upload arena,
+    /// written with one queue write before the encoder is submitted, as `uniforms` is.
+    uploads: Vec<u8>,
     /// The kernel profile, while it is on.
     profile: Option<Profile>,
 }
 
 /// Bytes of the uniform arena: 16384 params blocks at the usual 256-byte offset alignment.
 const ARENA_BYTES: u64 = 4 << 20;
+
+/// Bytes of the upload arena; an upload of more than a quarter of it gets a buffer of its own.
+const UPLOAD_ARENA_BYTES: u64 = 16 << 20;
 
 /// The largest params block a kernel may have (a uniform arena slot).
 const MAX_UNIFORM_BYTES: usize = 256;
@@ -531,6 +537,12 @@ impl GpuContext {
             mapped_at_creation: false,
         });
         let uniform_align = (limits.min_uniform_buffer_offset_alignment as usize).max(16);
+        let upload_arena = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("upload arena"),
+            size: UPLOAD_ARENA_BYTES,
+            usage: wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
         Ok(Self {
             adapter,
             device,
@@ -544,6 +556,7 @@ impl GpuContext {
             pool: Arc::default(),
             arena,
             uniform_align,
+            upload_arena,
             profiling: std::sync::atomic::AtomicBool::new(false),
         })
     }
@@ -637,18 +650,47 @@ impl GpuContext {
         wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC | wgpu::BufferUsages::COPY_DST
     }
 
-    /// Upload 4-byte elements (f32, u32, i32 or Pod structs of them) as a storage buffer.
+    /// Upload 4-byte elements (f32, u32, i32 or Pod structs of them) as a storage buffer. A
+    /// recycled buffer ([`Pool`]) is filled by a copy from the upload arena recorded into the
+    /// open encoder (the arena is written when the encoder is submitted, as the uniform arena is),
+    /// so after every command recorded so far and without a submission of its own; a new buffer
+    /// (none free of its class, or more than a quarter of the arena) is made with its contents.
     pub fn upload<T: bytemuck::Pod>(&self, label: &str, data: &[T]) -> GpuBuffer {
         let bytes: &[u8] = bytemuck::cast_slice(data);
         // wgpu rejects zero-sized bindings: keep at least one element.
         let padded = [0u8; 4];
         let contents = if bytes.is_empty() { &padded[..] } else { bytes };
+        let size = contents.len() as u64;
         self.count(&self.counters.uploads, 1);
-        self.count(&self.counters.upload_bytes, contents.len() as u64);
-        let buffer = self.counted_buffer(|| {
-            self.device.create_buffer_init(&wgpu::util::BufferInitDescriptor { label: Some(label), contents, usage: Self::storage_usage() })
-        });
-        GpuBuffer { buffer, len: bytes.len() / 4, home: None }
+        self.count(&self.counters.upload_bytes, size);
+        let key = (size_class(size), false);
+        let copied = (size <= UPLOAD_ARENA_BYTES / 4).then(|| self.upload_by_copy(key, contents)).flatten();
+        let buffer = match copied {
+            Some(buffer) => buffer,
+            None => self.counted_buffer(|| {
+                let b = self.device.create_buffer(&wgpu::BufferDescriptor { label: Some(label), size: key.0, usage: Self::storage_usage(), mapped_at_creation: true });
+                b.slice(..size).get_mapped_range_mut().expect("a buffer mapped at creation").copy_from_slice(contents);
+                b.unmap();
+                b
+            }),
+        };
+        let home = Some(Arc::new(Home { buffer: buffer.clone(), key, pool: Arc::downgrade(&self.pool) }));
+        GpuBuffer { buffer, len: bytes.len() / 4, home }
+    }
+
+    /// A recycled buffer of class `key` filled with `contents` by a copy from the upload arena,
+    /// or `None` where none is free or the open encoder's uploads fill the arena already.
+    fn upload_by_copy(&self, key: (u64, bool), contents: &[u8]) -> Option<wgpu::Buffer> {
+        let mut p = self.pending.lock().expect("pending batches poisoned");
+        if (p.uploads.len() + contents.len()) as u64 > UPLOAD_ARENA_BYTES {
+            return None;
+        }
+        let buffer = self.pool.lock().ok()?.take(key)?;
+        self.count(&self.counters.reused, 1);
+        let src_offset = p.uploads.len() as u64;
+        p.uploads.extend_from_slice(contents);
+        Command::Copy { src: self.upload_arena.clone(), src_offset, dst: buffer.clone(), size: contents.len() as u64 }.record(self, &mut p, 0);
+        Some(buffer)
     }
 
     pub fn upload_f32(&self, label: &str, data: &[f32]) -> GpuBuffer {
@@ -779,6 +821,10 @@ impl GpuContext {
             self.queue.write_buffer(&self.arena, 0, &pending.uniforms);
             pending.uniforms.clear();
         }
+        if !pending.uploads.is_empty() {
+            self.queue.write_buffer(&self.upload_arena, 0, &pending.uploads);
+            pending.uploads.clear();
+        }
         let timestamps = pending.profile.as_ref().filter(|p| !p.labels.is_empty()).map(|p| self.resolve_profile(&mut enc, p));
         self.count(&self.counters.submits, 1);
         self.queue.submit([enc.finish()]);
@@ -850,7 +896,7 @@ impl GpuContext {
             }
             // Back to the pool once this read has unmapped it.
             let (staging, key, _) = self.pooled("readback", size, true);
-            copies.push(Command::Copy { src: src.buffer.clone(), dst: staging.clone(), size });
+            copies.push(Command::Copy { src: src.buffer.clone(), src_offset: 0, dst: staging.clone(), size });
             self.count(&self.counters.reads, 1);
             self.count(&self.counters.read_bytes, size);
             staged.push(Some((staging, size, key)));
@@ -1091,7 +1137,7 @@ impl Batch<'_> {
         }
         if src.len > 0 {
             self.keep.extend([src.clone(), dst.clone()]);
-            self.commands.push(Command::Copy { src: src.buffer.clone(), dst: dst.buffer.clone(), size: (src.len * 4) as u64 });
+            self.commands.push(Command::Copy { src: src.buffer.clone(), src_offset: 0, dst: dst.buffer.clone(), size: (src.len * 4) as u64 });
         }
         Ok(())
     }
