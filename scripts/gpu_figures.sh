@@ -100,7 +100,7 @@ def run_line(name, r):
             f"waits {g.get('waits', 0):6.1f} ({1e3 * g.get('wait_seconds', 0):.2f} ms)  launches {g.get('dispatches', 0):6.1f}  "
             f"thread cpu {1e3 * (r.get('training_thread_cpu_seconds_per_step') or 0):.2f} ms  "
             f"eval {ev.get('psnr', float('nan')):.2f} dB  [{r['backend']}]"
-            + (f"\n{'':22}host per step: {g.get('buffers', 0):.1f} buffers made in {1e3 * g.get('buffer_seconds', 0):.2f} ms, "
+            + (f"\n{'':22}host per step: {g.get('buffers', 0):.1f} buffers made in {1e3 * g.get('buffer_seconds', 0):.2f} ms ({g.get('reused_buffers', 0):.1f} reused), "
                f"bind groups {1e3 * g.get('bind_group_seconds', 0):.2f} ms, recording + submitting {1e3 * g.get('queue_seconds', 0):.2f} ms" if g else ""))
 for name in ["bake_auto", "bake_wgpu", "bake_cpu"]:
     b = load(runs / name / "bake_report.json")
