@@ -77,6 +77,61 @@ fn bake_example_writes_a_valid_asset_close_to_the_ground_truth() {
     assert_usd_valid(&[out.join("asset.usda"), out.join("lookdev.usda")]);
 }
 
+/// The example's training split without its ground truth, its world scaled by `factor` (the
+/// cameras moved, the photos unchanged): the same capture measured in other units.
+fn example_in_units(dst: &Path, factor: f64) {
+    let ex = example();
+    std::fs::create_dir_all(dst.join("train")).unwrap();
+    let mut t: serde_json::Value = serde_json::from_slice(&std::fs::read(ex.join("transforms_train.json")).unwrap()).unwrap();
+    for f in t["frames"].as_array_mut().unwrap() {
+        for row in f["transform_matrix"].as_array_mut().unwrap().iter_mut().take(3) {
+            let x = row[3].as_f64().unwrap();
+            row[3] = serde_json::json!(x * factor);
+        }
+    }
+    std::fs::write(dst.join("transforms_train.json"), serde_json::to_vec(&t).unwrap()).unwrap();
+    for e in std::fs::read_dir(ex.join("train")).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), dst.join("train").join(e.file_name())).unwrap();
+    }
+}
+
+fn preview_extents(scene: &Path, out: &Path, extra: &[&str]) -> ([f64; 3], serde_json::Value) {
+    let mut args = vec![scene.to_str().unwrap(), "--out", out.to_str().unwrap(), "--preset", "preview", "--hull-resolution", "48", "--resolution", "48", "--texture", "64", "--no-blender-check"];
+    args.extend_from_slice(extra);
+    let o = bake(&args);
+    assert!(o.status.success(), "{}{}", String::from_utf8_lossy(&o.stdout), stderr_of(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("units: "), "says which unit it read");
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("bake_report.json")).unwrap()).unwrap();
+    let (lo, hi) = (&r["export"]["bounds_m"][0], &r["export"]["bounds_m"][1]);
+    (std::array::from_fn(|k| hi[k].as_f64().unwrap() - lo[k].as_f64().unwrap()), r["export"]["config"]["capture_units"].clone())
+}
+
+#[test]
+fn a_capture_in_millimetres_ships_in_metres() {
+    let dir = tempfile::tempdir().unwrap();
+    let (m, mm) = (dir.path().join("metres"), dir.path().join("millimetres"));
+    example_in_units(&m, 1.0);
+    example_in_units(&mm, 1000.0);
+    let (in_m, u_m) = preview_extents(&m, &dir.path().join("a"), &[]);
+    let (in_mm, u_mm) = preview_extents(&mm, &dir.path().join("b"), &[]);
+    assert_eq!(u_m["unit"], "metres");
+    assert_eq!(u_mm["unit"], "millimetres");
+    // Spot is 1.7 m tall in Blender metres: the same asset from either capture.
+    assert!(in_m[1] > 1.0 && in_m[1] < 3.0, "{in_m:?}");
+    for k in 0..3 {
+        assert!((in_m[k] - in_mm[k]).abs() < 1e-3 * in_m[k], "axis {k}: {in_m:?} vs {in_mm:?}");
+    }
+    // A given unit wins.
+    let (given, u) = preview_extents(&mm, &dir.path().join("c"), &["--metres-per-unit", "1"]);
+    assert_eq!(u["unit"], "given");
+    assert!((given[1] / in_m[1] - 1000.0).abs() < 1.0, "{given:?} vs {in_m:?}");
+    // Nonsense is refused before any work, naming the flag.
+    let o = bake(&[mm.to_str().unwrap(), "--out", dir.path().join("d").to_str().unwrap(), "--preset", "preview", "--metres-per-unit", "0"]);
+    assert_eq!(o.status.code(), Some(2), "{}", stderr_of(&o));
+    assert!(stderr_of(&o).contains("metres-per-unit"), "{}", stderr_of(&o));
+}
+
 fn stderr_of(o: &std::process::Output) -> String {
     String::from_utf8_lossy(&o.stderr).to_string()
 }

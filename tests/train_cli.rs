@@ -55,6 +55,18 @@ fn resumed_run_follows_the_straight_run_and_exports() {
     let smooth: Vec<f64> = csv.lines().skip(1).map(|l| l.split(',').nth(col).unwrap().parse().unwrap()).collect();
     assert!(smooth.iter().all(|v| v.is_finite() && *v >= 0.0) && smooth.iter().any(|v| *v > 0.0), "{smooth:?}");
     assert_eq!(ca, cb, "interrupted + resumed run must follow the straight run's loss curve");
+    // The resumed run's report speaks for the whole run: both invocations' steps and time.
+    let read = |p: &Path| -> serde_json::Value { serde_json::from_slice(&std::fs::read(p.join("train_report.json")).unwrap()).unwrap() };
+    let rb = read(&b);
+    assert_eq!((rb["steps"].as_u64(), rb["timed_steps"].as_u64(), rb["resumed_at"].as_u64()), (Some(6), Some(6), Some(3)), "{rb}");
+    let rate = rb["it_per_s"].as_f64().unwrap();
+    assert!((rate - 6.0 / rb["seconds"]["train"].as_f64().unwrap()).abs() < 1e-9 * rate && rate > 0.0, "{rb}");
+    // Trained again when finished: no step to time, the run's figures kept (not a rate of 0).
+    let o = train(&b, &["--iterations", "6", "--checkpoint-every", "3", "--resume"]);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(!text(&o).contains("at 0.00 it/s"), "{}", text(&o));
+    let again = read(&b);
+    assert_eq!((again["timed_steps"].as_u64(), again["it_per_s"].as_f64()), (Some(6), Some(rate)), "{again}");
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("train_report.json")).unwrap()).unwrap();
     assert_eq!(report["steps"], 6);
     assert!(report["sizes"]["grid_finest"].as_u64().unwrap() >= 64, "sizes are reported: {}", report["sizes"]);

@@ -64,6 +64,13 @@ fn stage_two_resumes_exactly_exports_and_relights() {
     let (ca, cb) = (curve(&a), curve(&b));
     assert_eq!(ca.len(), 6);
     assert_eq!(ca, cb, "a resumed stage-2 run follows the straight run");
+    // The resumed run's report counts both invocations' steps; a finished run trained again keeps it.
+    let read = |p: &Path| -> serde_json::Value { serde_json::from_slice(&std::fs::read(p.join("material_report.json")).unwrap()).unwrap() };
+    let rb = read(&b);
+    assert_eq!((rb["timed_steps"].as_u64(), rb["resumed_at"].as_u64()), (Some(6), Some(3)), "{rb}");
+    let o = stage2(&b, &["--material-iterations", "6", "--resume"]);
+    assert!(o.status.success() && !text(&o).contains("at 0.00 it/s"), "{}", text(&o));
+    assert_eq!((read(&b)["timed_steps"].as_u64(), read(&b)["it_per_s"].as_f64()), (Some(6), rb["it_per_s"].as_f64()));
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("material_report.json")).unwrap()).unwrap();
     assert_eq!(report["sizes"]["lobes"], 6);
     assert_eq!(report["config"]["decoder"], "separate", "a transforms.json scene is synthetic");

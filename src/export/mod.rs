@@ -32,6 +32,7 @@ use crate::image_io;
 use crate::mesh::field::{MaterialField, SdfField};
 use crate::mesh::uv::{self, UvError};
 use crate::mesh::{self, MeshConfig, MeshError, MeshStats};
+use crate::scene::normalise::CaptureUnits;
 use crate::sg::env::{EnvSgs, LatlongConvention, SgLobe};
 use crate::util::{atomic_write, DataError};
 
@@ -81,8 +82,10 @@ pub struct AssetArgs {
     #[arg(long)]
     pub name: Option<String>,
     /// Metres per world unit of the source (the capture's units; an analytic field's units).
-    #[arg(long, default_value_t = 1.0)]
-    pub metres_per_unit: f64,
+    /// Default for a capture: read from the object's size, metres unless the object spans more
+    /// than 20 world units, then millimetres (DTU's calibration); reported. An analytic field: 1.
+    #[arg(long, value_parser = parse_metres_per_unit)]
+    pub metres_per_unit: Option<f64>,
     /// Also write a .usdz package.
     #[arg(long)]
     pub usdz: bool,
@@ -97,6 +100,21 @@ impl AssetArgs {
     /// [`MeshConfig::face_tolerance_deg`] from `--face-tolerance` (its default where not given).
     pub fn face_tolerance_deg(&self) -> f32 {
         self.face_tolerance.unwrap_or(MeshConfig::default().face_tolerance_deg)
+    }
+
+    /// The capture's unit: `--metres-per-unit` where given, else read from the object's size
+    /// ([`CaptureUnits::from_scale`], `scale` the scene normalisation's world → normalised factor).
+    pub fn capture_units(&self, scale: f64) -> CaptureUnits {
+        self.metres_per_unit.map_or_else(|| CaptureUnits::from_scale(scale), CaptureUnits::given)
+    }
+}
+
+pub(crate) fn parse_metres_per_unit(s: &str) -> Result<f64, String> {
+    let v: f64 = s.parse().map_err(|_| format!("metres per unit `{s}` is not a number"))?;
+    if v.is_finite() && v > 0.0 {
+        Ok(v)
+    } else {
+        Err(format!("metres per unit must be a positive number, got {v}"))
     }
 }
 
@@ -118,6 +136,9 @@ pub struct ExportConfig {
     pub texture: TextureSize,
     /// Scene units → metres (undoes the scene normalisation).
     pub metres_per_unit: f32,
+    /// The capture's length unit this scale came from (a capture's export; none for an analytic
+    /// field), reported with the config.
+    pub capture_units: Option<CaptureUnits>,
     /// Added after scaling (metres), before the origin is moved to the bottom centre.
     pub scene_offset_m: [f32; 3],
     /// Also write `<name>.usdz`.
@@ -135,6 +156,7 @@ impl Default for ExportConfig {
             mesh: MeshConfig::default(),
             texture: TextureSize::Auto,
             metres_per_unit: 1.0,
+            capture_units: None,
             scene_offset_m: [0.0; 3],
             usdz: false,
             env_width: 512,

@@ -65,6 +65,7 @@ pub fn summary(scene: &Scene) -> serde_json::Value {
         "normalisation": {
             "center_world": n.center.to_array(), "scale": n.scale, "method": n.method,
         },
+        "units": super::normalise::CaptureUnits::from_scale(n.scale),
         "up_axis": {"vector_world": n.up_axis.to_array(), "nearest": n.up_axis_name},
         "masks": {
             "views_with_mask": scene.views.iter().filter(|v| v.mask.is_some()).count(),
@@ -120,6 +121,7 @@ pub fn run(args: &InfoArgs, ctx: &Context) -> anyhow::Result<Scene> {
         "normalisation     x_norm = (x - [{:.4}, {:.4}, {:.4}]) * {:.5}  ({})",
         n.center.x, n.center.y, n.center.z, n.scale, n.method
     ));
+    ctx.say(format!("units             {}", s["units"]["why"].as_str().unwrap_or_default()));
     ctx.say(format!("camera distance (normalised) {}", f3(&s["camera_distance_normalised"])));
     ctx.say(format!("up axis           [{:.3}, {:.3}, {:.3}] (nearest {})", n.up_axis.x, n.up_axis.y, n.up_axis.z, n.up_axis_name));
     ctx.say(format!("masks             {} views, coverage {}", s["masks"]["views_with_mask"], f3(&s["masks"]["coverage"])));

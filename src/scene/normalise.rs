@@ -53,6 +53,53 @@ impl Normalisation {
     }
 }
 
+/// Widest sphere (diameter in the capture's world units) read as metres when no unit is given:
+/// a photographed object of up to about 18 m fits a sphere of 20 m with the normalisation's margin,
+/// and one of 2 cm or more measured in millimetres (DTU's calibration, structured-light scanners)
+/// spans more than 20 units. Between the two ranges nothing is ambiguous; outside them (a building
+/// in metres, a grain in millimetres) `--metres-per-unit` sets the unit.
+pub const METRES_MAX_SPAN: f64 = 20.0;
+
+/// The capture's length unit, as the asset's metres per world unit, and why.
+#[derive(Clone, Debug, PartialEq, Serialize, serde::Deserialize)]
+pub struct CaptureUnits {
+    pub metres_per_unit: f64,
+    /// `metres`, `millimetres` (both read from the object's size) or `given` (`--metres-per-unit`).
+    pub unit: String,
+    /// One line for the user: the size it was read from and how to override it.
+    pub why: String,
+}
+
+impl CaptureUnits {
+    /// The unit `--metres-per-unit` gives.
+    pub fn given(metres_per_unit: f64) -> Self {
+        Self { metres_per_unit, unit: "given".into(), why: format!("{metres_per_unit} m per world unit (--metres-per-unit)") }
+    }
+
+    /// The unit read from the object's size: `scale` is the normalisation's (world units →
+    /// normalised units, the object inside the unit sphere), so the sphere spans `2 / scale` world
+    /// units. Metres up to [`METRES_MAX_SPAN`], millimetres beyond.
+    pub fn from_scale(scale: f64) -> Self {
+        let span = 2.0 / scale;
+        if span.is_finite() && span > METRES_MAX_SPAN {
+            Self {
+                metres_per_unit: 1e-3,
+                unit: "millimetres".into(),
+                why: format!(
+                    "the object's sphere spans {span:.1} world units, too large for metres (over {METRES_MAX_SPAN}): read as millimetres, {:.3} m (--metres-per-unit sets the unit)",
+                    span * 1e-3
+                ),
+            }
+        } else {
+            Self {
+                metres_per_unit: 1.0,
+                unit: "metres".into(),
+                why: format!("the object's sphere spans {span:.3} world units: read as metres (--metres-per-unit sets the unit)"),
+            }
+        }
+    }
+}
+
 /// What a reader knows about the object's extent (world frame).
 #[derive(Clone, Debug, Default)]
 pub(crate) struct BoundHint {
@@ -160,4 +207,26 @@ fn visual_hull_bound(path: &Path, views: &[View], start: DVec3, half: f64) -> Re
     let c = 0.5 * (lo + hi);
     let r = kept.iter().map(|p| (*p - c).length()).fold(0.0, f64::max) + 0.87 * step;
     Ok((c, r))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn capture_units_read_metres_or_millimetres_from_the_objects_span() {
+        // A 2.4 m sphere (the example, in Blender metres) and one of 18 m stay metres.
+        for span in [2.4, 18.0, METRES_MAX_SPAN] {
+            let u = CaptureUnits::from_scale(2.0 / span);
+            assert_eq!((u.metres_per_unit, u.unit.as_str()), (1.0, "metres"), "span {span}");
+        }
+        // DTU scan37's 512-unit sphere is half a metre in millimetres; so is anything past 20.
+        for span in [512.0, 20.5, 1e5] {
+            let u = CaptureUnits::from_scale(2.0 / span);
+            assert_eq!((u.metres_per_unit, u.unit.as_str()), (1e-3, "millimetres"), "span {span}");
+            assert!(u.why.contains("--metres-per-unit"), "{}", u.why);
+        }
+        let g = CaptureUnits::given(0.01);
+        assert_eq!((g.metres_per_unit, g.unit.as_str()), (0.01, "given"));
+    }
 }

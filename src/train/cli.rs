@@ -407,6 +407,59 @@ pub fn interrupt_flag() -> Arc<AtomicBool> {
     .clone()
 }
 
+/// The figures of a stage's training that only the invocation which trained the steps measured:
+/// its per-step costs and the backend that ran them (stage 2's `step_backend`: which one it chose).
+pub(crate) const PER_STEP_FIGURES: [&str; 6] = ["backend", "step_backend", "gpu_per_step", "gpu_kernels_per_step", "host_encoding_seconds_per_step", "training_thread_cpu_seconds_per_step"];
+
+/// Make a stage's report, written by an invocation that resumed the run at `step0`, speak for the
+/// whole run: `report_path` still holds the report of the invocation before (written when it
+/// ended; an interrupted one writes none). Its `once` entries (made at the run's start, such as
+/// the initialisation's report) and `seconds.<once_seconds>` fill those this invocation left empty.
+/// Where that report ended at `step0`, the earlier steps' training time adds to this one's, so
+/// `it_per_s` is the rate over every timed step (`timed_steps`), and an invocation that trained no
+/// step (a finished run baked or trained again) keeps the per-step figures of the one that did,
+/// instead of a rate of 0. Otherwise (steps trained by an interrupted invocation, whose time is
+/// unknown) the rate is this invocation's alone.
+pub(crate) fn span_the_whole_run(report: &mut serde_json::Value, report_path: &Path, step0: u64, once: &[&str], once_seconds: &[&str]) {
+    use serde_json::{json, Value};
+    let step = report["steps"].as_u64().unwrap_or(step0);
+    let mut timed = step.saturating_sub(step0);
+    // An invocation that trained no step only saved its checkpoint: no training time.
+    let mut train = if timed > 0 { report["seconds"]["train"].as_f64().unwrap_or(0.0) } else { 0.0 };
+    let earlier: Option<Value> = (step0 > 0).then(|| std::fs::read(report_path).ok().and_then(|b| serde_json::from_slice(&b).ok())).flatten();
+    if let Some(e) = earlier.filter(|e| e["stage"] == report["stage"]) {
+        for k in once {
+            if report[*k].is_null() {
+                report[*k] = e[*k].clone();
+            }
+        }
+        for k in once_seconds {
+            if report["seconds"][*k].as_f64().unwrap_or(0.0) == 0.0 && !e["seconds"][*k].is_null() {
+                report["seconds"][*k] = e["seconds"][*k].clone();
+            }
+        }
+        if e["steps"].as_u64() == Some(step0) {
+            // A report from before `timed_steps` timed its own invocation's steps at `it_per_s`.
+            let earlier_timed = e["timed_steps"].as_u64().unwrap_or_else(|| (e["it_per_s"].as_f64().unwrap_or(0.0) * e["seconds"]["train"].as_f64().unwrap_or(0.0)).round() as u64);
+            timed += earlier_timed;
+            train += e["seconds"]["train"].as_f64().unwrap_or(0.0);
+            if step == step0 {
+                for k in PER_STEP_FIGURES {
+                    if let Some(v) = e.get(k) {
+                        report[k] = v.clone();
+                    }
+                }
+            }
+        }
+    }
+    report["timed_steps"] = json!(timed);
+    report["seconds"]["train"] = json!(train);
+    report["it_per_s"] = json!(if train > 0.0 { timed as f64 / train } else { 0.0 });
+    if step0 > 0 {
+        report["resumed_at"] = json!(step0);
+    }
+}
+
 /// When a training loop writes its checkpoint (and loss curve), and how it stops on Ctrl-C: one
 /// rule for stage 1 and stage 2, so a killed run loses at most `every` steps and an interrupted
 /// one says how to go on.
@@ -894,6 +947,9 @@ pub fn train_stage1(
         "weak_result": weak,
         "seconds": { "init": seconds_init, "train": seconds_train, "total": t_total.elapsed().as_secs_f64() },
     });
+    let mut report = report;
+    span_the_whole_run(&mut report, &run_dir.join("train_report.json"), step0, &["hull_init", "mesh_init"], &["init"]);
+    let its = report["it_per_s"].as_f64().unwrap_or(its);
     crate::util::atomic_write(&run_dir.join("train_report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
     if let Some(line) = per_step.kernel_line("stage 1") {
         ctx.say(line);
@@ -1190,11 +1246,14 @@ pub fn export_stage1(backend: &Backend, trainer: &Trainer, rs: &RunScene, asset:
     let cfg = &trainer.cfg;
     let sdf = TrainedSdf::new(backend, trainer.model(), rotation).context("meshing the trained SDF")?;
     let material = RadiancePreview { model: trainer.model(), rotation, roughness: 0.5, feature: 16.0 * cfg.sizes.pixel_footprint };
+    let units = asset.capture_units(rs.scale);
+    ctx.say(format!("units: {}", units.why));
     let ecfg = ExportConfig {
         name: asset.name.clone().unwrap_or_else(|| default_name.to_string()),
         mesh: MeshConfig { face_tolerance_deg: asset.face_tolerance_deg(), ..trained_mesh_config(&cfg.sizes, asset.resolution, asset.error_bound) },
         texture: asset.texture,
-        metres_per_unit: (asset.metres_per_unit / rs.scale) as f32,
+        metres_per_unit: (units.metres_per_unit / rs.scale) as f32,
+        capture_units: Some(units),
         usdz: asset.usdz,
         provenance: serde_json::json!({
             "method": "stage 1 (trained SDF + radiance preview); light/material not yet separated",
@@ -1281,6 +1340,7 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
         Some(s2) => super::material::export_stage2(&backend, &run.trainer, s2, &run.run_scene, &args.asset, &name, ctx)?,
     };
     let seconds_export = t.elapsed().as_secs_f64();
+    let units = args.asset.capture_units(run.run_scene.scale);
     // Read as the run was (a resumed bake keeps the flags it started with): its views, its frame.
     let mut scene = crate::scene::load(&args.scene, &ReadOptions { downscale: Downscale::By(run.trainer.cfg.downscale.max(1)), keep_all_views: run.trainer.cfg.keep_all_views })?;
     // A check on training views (a scene without held-out ones) sees them as stage 1 refined them.
@@ -1289,7 +1349,7 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
         &args.scene,
         scene.normalisation.center,
         DMat3::from_cols_array(&run.run_scene.rotation),
-        args.asset.metres_per_unit,
+        units.metres_per_unit,
         &report,
         ctx,
     )?;
@@ -1310,7 +1370,7 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
     };
     let frame = super::blender_check::AssetFrame {
         rotation: DMat3::from_cols_array(&run.run_scene.rotation),
-        scale: args.asset.metres_per_unit / run.run_scene.scale,
+        scale: units.metres_per_unit / run.run_scene.scale,
         shift: glam::DVec3::from(report.origin_shift_m.map(f64::from)),
     };
     let (train_v, held_v) = train_views(&scene);

@@ -668,6 +668,9 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "flags": flags,
         "seconds": { "cache": seconds_cache, "train": seconds_train, "total": t_total.elapsed().as_secs_f64() },
     });
+    let mut report = report;
+    super::cli::span_the_whole_run(&mut report, &run_dir.join("material_report.json"), step0, &[], &[]);
+    let its = report["it_per_s"].as_f64().unwrap_or(its);
     crate::util::atomic_write(&run_dir.join("material_report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
     if let Some(line) = per_step.kernel_line("stage 2") {
         ctx.say(line);
@@ -880,11 +883,14 @@ pub fn export_stage2(backend: &Backend, s1: &Trainer, s2: &Stage2Trainer, rs: &R
     let refined = stage2_geometry(s1, s2)?;
     let sdf = TrainedSdf::new(backend, refined.as_ref().unwrap_or(s1.model()), rotation).context("meshing the trained SDF")?;
     let material = LearnedMaterial { model: &s2.model, rotation, feature: 16.0 * cfg.sizes.pixel_footprint };
+    let units = asset.capture_units(rs.scale);
+    ctx.say(format!("units: {}", units.why));
     let ecfg = ExportConfig {
         name: asset.name.clone().unwrap_or_else(|| default_name.to_string()),
         mesh: crate::mesh::MeshConfig { face_tolerance_deg: asset.face_tolerance_deg(), ..super::cli::trained_mesh_config(&cfg.sizes, asset.resolution, asset.error_bound) },
         texture: asset.texture,
-        metres_per_unit: (asset.metres_per_unit / rs.scale) as f32,
+        metres_per_unit: (units.metres_per_unit / rs.scale) as f32,
+        capture_units: Some(units),
         usdz: asset.usdz,
         provenance: serde_json::json!({
             "method": "stage 1 (trained SDF) + stage 2 (SG environment, material autoencoder, indirect light)",

@@ -329,9 +329,6 @@ fn ground_truth_mesh(scene_dir: &Path) -> Option<PathBuf> {
 }
 
 pub fn run(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
-    if !(args.asset.metres_per_unit.is_finite() && args.asset.metres_per_unit > 0.0) {
-        anyhow::bail!("--metres-per-unit must be > 0, got {}", args.asset.metres_per_unit);
-    }
     crate::export::check_writable(&args.asset.out)?;
     match args.preset {
         BakePreset::Preview => run_preview(args, ctx),
@@ -445,6 +442,8 @@ pub fn run_preview(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
     // 4–5. Export.
     let scale = scene.normalisation.scale;
     let name = asset_name(args);
+    let units = args.asset.capture_units(scale);
+    ctx.say(format!("units: {}", units.why));
     let cfg = ExportConfig {
         name: name.clone(),
         // The hull is known to a voxel: bound the simplification by one hull voxel.
@@ -455,7 +454,8 @@ pub fn run_preview(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
             ..Default::default()
         },
         texture: args.asset.texture,
-        metres_per_unit: (args.asset.metres_per_unit / scale) as f32,
+        metres_per_unit: (units.metres_per_unit / scale) as f32,
+        capture_units: Some(units.clone()),
         usdz: args.asset.usdz,
         provenance: serde_json::json!({
             "method": "preview bake (visual hull + photo projection, no training)",
@@ -482,7 +482,7 @@ pub fn run_preview(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
     ));
 
     // 6. Ground truth, when the scene has it.
-    let gt_metrics = ground_truth_metrics(&args.scene, scene.normalisation.center, rotation, args.asset.metres_per_unit, &report, ctx)?;
+    let gt_metrics = ground_truth_metrics(&args.scene, scene.normalisation.center, rotation, units.metres_per_unit, &report, ctx)?;
 
     let summary = serde_json::json!({
         "method": "preview",
