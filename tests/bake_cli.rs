@@ -108,7 +108,7 @@ fn preview_extents(scene: &Path, out: &Path, extra: &[&str]) -> ([f64; 3], serde
 }
 
 #[test]
-fn a_capture_in_millimetres_ships_in_metres() {
+fn a_capture_in_millimetres_ships_in_metres_and_height_sets_the_size() {
     let dir = tempfile::tempdir().unwrap();
     let (m, mm) = (dir.path().join("metres"), dir.path().join("millimetres"));
     example_in_units(&m, 1.0);
@@ -126,6 +126,20 @@ fn a_capture_in_millimetres_ships_in_metres() {
     let (given, u) = preview_extents(&mm, &dir.path().join("c"), &["--metres-per-unit", "1"]);
     assert_eq!(u["unit"], "given");
     assert!((given[1] / in_m[1] - 1000.0).abs() < 1.0, "{given:?} vs {in_m:?}");
+    // --height scales the asset to a known size (SfM captures have none); the unit becomes the
+    // factor it came to. With ground truth (the whole example), the comparison follows the scale.
+    let (tall, u) = preview_extents(&mm, &dir.path().join("e"), &["--height", "0.5"]);
+    assert!((tall[1] - 0.5).abs() < 1e-5 && u["unit"] == "height", "{tall:?} {u}");
+    let mpu = u["metres_per_unit"].as_f64().unwrap();
+    assert!((mpu * 1000.0 / (0.5 / in_m[1]) - 1.0).abs() < 1e-3, "{mpu} m per millimetre-unit for a {} m tall metre-capture", in_m[1]);
+    let ex_out = dir.path().join("f");
+    let (ex_tall, _) = preview_extents(&example(), &ex_out, &["--height", "0.85"]);
+    assert!((ex_tall[1] - 0.85).abs() < 1e-5, "{ex_tall:?}");
+    let r: serde_json::Value = serde_json::from_slice(&std::fs::read(ex_out.join("bake_report.json")).unwrap()).unwrap();
+    let rel = r["ground_truth"]["chamfer_over_object_size"].as_f64().unwrap();
+    assert!(rel < 0.015, "the ground truth scaled with the asset: Chamfer {rel} of its size");
+    let o = bake(&[mm.to_str().unwrap(), "--out", dir.path().join("g").to_str().unwrap(), "--preset", "preview", "--height", "1", "--metres-per-unit", "1"]);
+    assert_eq!(o.status.code(), Some(2), "one or the other: {}", stderr_of(&o));
     // Nonsense is refused before any work, naming the flag.
     let o = bake(&[mm.to_str().unwrap(), "--out", dir.path().join("d").to_str().unwrap(), "--preset", "preview", "--metres-per-unit", "0"]);
     assert_eq!(o.status.code(), Some(2), "{}", stderr_of(&o));

@@ -58,6 +58,7 @@ pub fn run(args: &ExportArgs, ctx: &Context) -> anyhow::Result<()> {
         },
         texture: args.asset.texture,
         metres_per_unit: args.asset.metres_per_unit.unwrap_or(1.0) as f32,
+        height_m: args.asset.height.map(|h| h as f32),
         usdz: args.asset.usdz,
         provenance: serde_json::json!({ "analytic": analytic.name(), "material": args.material.name() }),
         ..Default::default()

@@ -86,6 +86,10 @@ pub struct AssetArgs {
     /// than 20 world units, then millimetres (DTU's calibration); reported. An analytic field: 1.
     #[arg(long, value_parser = parse_metres_per_unit)]
     pub metres_per_unit: Option<f64>,
+    /// The asset's height in metres (its extent along +Y): scales the asset to it, for captures
+    /// whose units are arbitrary (COLMAP, LLFF, nerfstudio) and objects whose size is known.
+    #[arg(long, value_parser = parse_metres_per_unit, conflicts_with = "metres_per_unit")]
+    pub height: Option<f64>,
     /// Also write a .usdz package.
     #[arg(long)]
     pub usdz: bool,
@@ -104,8 +108,14 @@ impl AssetArgs {
 
     /// The capture's unit: `--metres-per-unit` where given, else read from the object's size
     /// ([`CaptureUnits::from_scale`], `scale` the scene normalisation's world → normalised factor).
+    /// With `--height`, the unit read from the object's size stands until the export measures the
+    /// mesh and scales it ([`ExportConfig::height_m`]).
     pub fn capture_units(&self, scale: f64) -> CaptureUnits {
-        self.metres_per_unit.map_or_else(|| CaptureUnits::from_scale(scale), CaptureUnits::given)
+        match (self.metres_per_unit, self.height) {
+            (Some(m), _) => CaptureUnits::given(m),
+            (None, Some(h)) => CaptureUnits { unit: "height".into(), why: format!("scaled to a height of {h} m (--height)"), ..CaptureUnits::from_scale(scale) },
+            (None, None) => CaptureUnits::from_scale(scale),
+        }
     }
 }
 
@@ -139,6 +149,9 @@ pub struct ExportConfig {
     /// The capture's length unit this scale came from (a capture's export; none for an analytic
     /// field), reported with the config.
     pub capture_units: Option<CaptureUnits>,
+    /// Scale the asset to this height (metres, its +Y extent) instead of by `metres_per_unit`; the
+    /// report's config gives the scale it came to (and `capture_units` the metres per world unit).
+    pub height_m: Option<f32>,
     /// Added after scaling (metres), before the origin is moved to the bottom centre.
     pub scene_offset_m: [f32; 3],
     /// Also write `<name>.usdz`.
@@ -157,6 +170,7 @@ impl Default for ExportConfig {
             texture: TextureSize::Auto,
             metres_per_unit: 1.0,
             capture_units: None,
+            height_m: None,
             scene_offset_m: [0.0; 3],
             usdz: false,
             env_width: 512,
@@ -316,6 +330,24 @@ pub fn export_asset_with(
     // Geometry (scene units).
     let built = mesh::build_mesh_with(backend, sdf, &cfg.mesh, progress)?;
     let (lo, hi) = built.mesh.bounds();
+    let resolved;
+    let cfg = match cfg.height_m {
+        None => cfg,
+        Some(h) => {
+            let span = hi[1] - lo[1];
+            if !(h.is_finite() && h > 0.0 && span > 0.0) {
+                return Err(ExportError::Config(format!("cannot scale a mesh {span} units tall to a height of {h} m")));
+            }
+            let mut c = cfg.clone();
+            c.metres_per_unit = h / span;
+            let factor = f64::from(c.metres_per_unit) / f64::from(cfg.metres_per_unit);
+            if let Some(u) = &mut c.capture_units {
+                u.metres_per_unit *= factor;
+            }
+            resolved = c;
+            &resolved
+        }
+    };
     let object_size = (0..3).map(|k| (hi[k] - lo[k]) as f64).fold(0.0, f64::max);
     let (texture_size, reason) = match cfg.texture {
         TextureSize::Fixed(n) => (n, "fixed by the user".to_string()),

@@ -1254,6 +1254,7 @@ pub fn export_stage1(backend: &Backend, trainer: &Trainer, rs: &RunScene, asset:
         texture: asset.texture,
         metres_per_unit: (units.metres_per_unit / rs.scale) as f32,
         capture_units: Some(units),
+        height_m: asset.height.map(|h| h as f32),
         usdz: asset.usdz,
         provenance: serde_json::json!({
             "method": "stage 1 (trained SDF + radiance preview); light/material not yet separated",
@@ -1340,7 +1341,8 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
         Some(s2) => super::material::export_stage2(&backend, &run.trainer, s2, &run.run_scene, &args.asset, &name, ctx)?,
     };
     let seconds_export = t.elapsed().as_secs_f64();
-    let units = args.asset.capture_units(run.run_scene.scale);
+    // The unit the export came to (`--height` scales the mesh as measured there).
+    let metres_per_world_unit = report.config.capture_units.as_ref().map_or(1.0, |u| u.metres_per_unit);
     // Read as the run was (a resumed bake keeps the flags it started with): its views, its frame.
     let mut scene = crate::scene::load(&args.scene, &ReadOptions { downscale: Downscale::By(run.trainer.cfg.downscale.max(1)), keep_all_views: run.trainer.cfg.keep_all_views })?;
     // A check on training views (a scene without held-out ones) sees them as stage 1 refined them.
@@ -1349,7 +1351,7 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
         &args.scene,
         scene.normalisation.center,
         DMat3::from_cols_array(&run.run_scene.rotation),
-        units.metres_per_unit,
+        metres_per_world_unit,
         &report,
         ctx,
     )?;
@@ -1370,7 +1372,7 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
     };
     let frame = super::blender_check::AssetFrame {
         rotation: DMat3::from_cols_array(&run.run_scene.rotation),
-        scale: units.metres_per_unit / run.run_scene.scale,
+        scale: f64::from(report.config.metres_per_unit),
         shift: glam::DVec3::from(report.origin_shift_m.map(f64::from)),
     };
     let (train_v, held_v) = train_views(&scene);

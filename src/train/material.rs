@@ -891,6 +891,7 @@ pub fn export_stage2(backend: &Backend, s1: &Trainer, s2: &Stage2Trainer, rs: &R
         texture: asset.texture,
         metres_per_unit: (units.metres_per_unit / rs.scale) as f32,
         capture_units: Some(units),
+        height_m: asset.height.map(|h| h as f32),
         usdz: asset.usdz,
         provenance: serde_json::json!({
             "method": "stage 1 (trained SDF) + stage 2 (SG environment, material autoencoder, indirect light)",

@@ -455,7 +455,8 @@ pub fn run_preview(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
         },
         texture: args.asset.texture,
         metres_per_unit: (units.metres_per_unit / scale) as f32,
-        capture_units: Some(units.clone()),
+        capture_units: Some(units),
+        height_m: args.asset.height.map(|h| h as f32),
         usdz: args.asset.usdz,
         provenance: serde_json::json!({
             "method": "preview bake (visual hull + photo projection, no training)",
@@ -482,7 +483,7 @@ pub fn run_preview(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
     ));
 
     // 6. Ground truth, when the scene has it.
-    let gt_metrics = ground_truth_metrics(&args.scene, scene.normalisation.center, rotation, units.metres_per_unit, &report, ctx)?;
+    let gt_metrics = ground_truth_metrics(&args.scene, scene.normalisation.center, rotation, report.config.capture_units.as_ref().map_or(1.0, |u| u.metres_per_unit), &report, ctx)?;
 
     let summary = serde_json::json!({
         "method": "preview",
