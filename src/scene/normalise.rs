@@ -94,7 +94,9 @@ impl CaptureUnits {
             Self {
                 metres_per_unit: 1.0,
                 unit: "metres".into(),
-                why: format!("the object's sphere spans {span:.3} world units: read as metres (--metres-per-unit sets the unit)"),
+                why: format!(
+                    "the object's sphere spans {span:.3} world units: read as metres (--metres-per-unit sets the unit; a capture posed by COLMAP has no true scale: --height sets the asset's height)"
+                ),
             }
         }
     }
