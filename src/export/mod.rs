@@ -84,11 +84,11 @@ pub struct AssetArgs {
     /// Metres per world unit of the source (the capture's units; an analytic field's units).
     /// Default for a capture: read from the object's size, metres unless the object spans more
     /// than 20 world units, then millimetres (DTU's calibration); reported. An analytic field: 1.
-    #[arg(long, value_parser = parse_metres_per_unit)]
+    #[arg(long, value_parser = parse_positive_metres)]
     pub metres_per_unit: Option<f64>,
     /// The asset's height in metres (its extent along +Y): scales the asset to it, for captures
     /// whose units are arbitrary (COLMAP, LLFF, nerfstudio) and objects whose size is known.
-    #[arg(long, value_parser = parse_metres_per_unit, conflicts_with = "metres_per_unit")]
+    #[arg(long, value_parser = parse_positive_metres, conflicts_with = "metres_per_unit")]
     pub height: Option<f64>,
     /// Also write a .usdz package.
     #[arg(long)]
@@ -119,12 +119,13 @@ impl AssetArgs {
     }
 }
 
-pub(crate) fn parse_metres_per_unit(s: &str) -> Result<f64, String> {
-    let v: f64 = s.parse().map_err(|_| format!("metres per unit `{s}` is not a number"))?;
+/// `--metres-per-unit` and `--height`: a positive, finite number of metres.
+pub(crate) fn parse_positive_metres(s: &str) -> Result<f64, String> {
+    let v: f64 = s.parse().map_err(|_| format!("`{s}` is not a number of metres"))?;
     if v.is_finite() && v > 0.0 {
         Ok(v)
     } else {
-        Err(format!("metres per unit must be a positive number, got {v}"))
+        Err(format!("must be a positive number of metres, got {v}"))
     }
 }
 
@@ -160,6 +161,14 @@ pub struct ExportConfig {
     pub env_width: usize,
     /// Recorded in the glTF `asset.extras` and the report (source images, settings, ...).
     pub provenance: serde_json::Value,
+}
+
+impl ExportConfig {
+    /// Metres per world unit of the capture as exported (after `height_m` scaled it; 1 for an
+    /// export without a capture): what maps the capture's own meshes (ground truth) to the asset.
+    pub fn metres_per_world_unit(&self) -> f64 {
+        self.capture_units.as_ref().map_or(1.0, |u| u.metres_per_unit)
+    }
 }
 
 impl Default for ExportConfig {

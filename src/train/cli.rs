@@ -920,7 +920,7 @@ pub fn train_stage1(
         ));
     }
     let weak = !flags.is_empty();
-    let report = serde_json::json!({
+    let mut report = serde_json::json!({
         "stage": "geometry",
         "preset": cfg.preset,
         "tracing": cfg.trace.mode,
@@ -947,7 +947,6 @@ pub fn train_stage1(
         "weak_result": weak,
         "seconds": { "init": seconds_init, "train": seconds_train, "total": t_total.elapsed().as_secs_f64() },
     });
-    let mut report = report;
     span_the_whole_run(&mut report, &run_dir.join("train_report.json"), step0, &["hull_init", "mesh_init"], &["init"]);
     let its = report["it_per_s"].as_f64().unwrap_or(its);
     crate::util::atomic_write(&run_dir.join("train_report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
@@ -1341,8 +1340,6 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
         Some(s2) => super::material::export_stage2(&backend, &run.trainer, s2, &run.run_scene, &args.asset, &name, ctx)?,
     };
     let seconds_export = t.elapsed().as_secs_f64();
-    // The unit the export came to (`--height` scales the mesh as measured there).
-    let metres_per_world_unit = report.config.capture_units.as_ref().map_or(1.0, |u| u.metres_per_unit);
     // Read as the run was (a resumed bake keeps the flags it started with): its views, its frame.
     let mut scene = crate::scene::load(&args.scene, &ReadOptions { downscale: Downscale::By(run.trainer.cfg.downscale.max(1)), keep_all_views: run.trainer.cfg.keep_all_views })?;
     // A check on training views (a scene without held-out ones) sees them as stage 1 refined them.
@@ -1351,7 +1348,7 @@ pub fn bake_trained(args: &super::preview::BakeArgs, ctx: &Context) -> anyhow::R
         &args.scene,
         scene.normalisation.center,
         DMat3::from_cols_array(&run.run_scene.rotation),
-        metres_per_world_unit,
+        report.config.metres_per_world_unit(),
         &report,
         ctx,
     )?;

@@ -621,7 +621,7 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
             crate::scene::texture::TEXTURELESS_BELOW
         ));
     }
-    let report = serde_json::json!({
+    let mut report = serde_json::json!({
         "stage": "material",
         "preset": cfg.preset,
         "backend": backend.describe(),
@@ -668,7 +668,6 @@ pub fn train_stage2(scene_path: &Path, preset: Preset, opts: &MaterialOptions, s
         "flags": flags,
         "seconds": { "cache": seconds_cache, "train": seconds_train, "total": t_total.elapsed().as_secs_f64() },
     });
-    let mut report = report;
     super::cli::span_the_whole_run(&mut report, &run_dir.join("material_report.json"), step0, &[], &[]);
     let its = report["it_per_s"].as_f64().unwrap_or(its);
     crate::util::atomic_write(&run_dir.join("material_report.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;

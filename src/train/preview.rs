@@ -483,7 +483,7 @@ pub fn run_preview(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
     ));
 
     // 6. Ground truth, when the scene has it.
-    let gt_metrics = ground_truth_metrics(&args.scene, scene.normalisation.center, rotation, report.config.capture_units.as_ref().map_or(1.0, |u| u.metres_per_unit), &report, ctx)?;
+    let gt_metrics = ground_truth_metrics(&args.scene, scene.normalisation.center, rotation, report.config.metres_per_world_unit(), &report, ctx)?;
 
     let summary = serde_json::json!({
         "method": "preview",
