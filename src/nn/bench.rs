@@ -185,6 +185,63 @@ fn grid_lanes(network: &str, cfg: &EncodingConfig, batch: usize, iters: usize) -
     }))
 }
 
+/// The cpu backend's hidden activation loops built for AVX-512 against the AVX2 build, on one
+/// sub-batch's pre-activations of a network's hidden layers, same inputs, same run.
+#[derive(Debug, Clone, serde::Serialize)]
+struct ActivationLanes {
+    network: String,
+    activation: String,
+    /// Values per timed call (sub-batch rows × the hidden width).
+    values: usize,
+    /// AVX2 time over AVX-512 time (best of the rounds): forward, backward.
+    forward_speedup: f64,
+    backward_speedup: f64,
+    /// AVX-512 time per value, ns (forward, backward).
+    ns_per_value: [f64; 2],
+}
+
+/// Times the hidden activation's forward and backward at AVX2 and at AVX-512, alternating within
+/// each round, and checks that they agree bit for bit. None on a CPU without AVX-512.
+fn activation_lanes(network: &str, mlp: &Mlp, rows: usize, iters: usize) -> anyhow::Result<Option<ActivationLanes>> {
+    use crate::nn::mlp::SimdLevel;
+    if SimdLevel::detected() < SimdLevel::Avx512 {
+        return Ok(None);
+    }
+    let act = mlp.config.activation;
+    let width = mlp.config.widths.first().copied().unwrap_or(1);
+    let n = rows.max(1) * width;
+    let mut rng = crate::util::rng(5);
+    // Pre-activations of a trained network's hidden layers: mostly within a few 1/β of 0.
+    let z = uniform(&mut rng, n, 0.1);
+    let dh = uniform(&mut rng, n, 1.0);
+    let levels = [SimdLevel::Avx2, SimdLevel::Avx512];
+    let mut best = [[f64::INFINITY; 2]; 2];
+    for _ in 0..iters.max(2) * 5 {
+        let mut outs: [[Vec<f32>; 2]; 2] = Default::default();
+        for (i, &level) in levels.iter().enumerate() {
+            let t = Instant::now();
+            outs[0][i] = act.forward_slice_at(level, &z);
+            best[0][i] = best[0][i].min(t.elapsed().as_secs_f64());
+            let t = Instant::now();
+            outs[1][i] = act.backward_slice_at(level, &z, &dh);
+            best[1][i] = best[1][i].min(t.elapsed().as_secs_f64());
+        }
+        for (pass, [a, b]) in outs.iter().enumerate() {
+            if a.iter().zip(b).any(|(p, q)| p.to_bits() != q.to_bits()) {
+                anyhow::bail!("{network} activation: the AVX-512 and the AVX2 loops disagree in pass {pass}");
+            }
+        }
+    }
+    Ok(Some(ActivationLanes {
+        network: network.into(),
+        activation: format!("{act:?}"),
+        values: n,
+        forward_speedup: best[0][0] / best[0][1],
+        backward_speedup: best[1][0] / best[1][1],
+        ns_per_value: [0, 1].map(|p| best[p][1] / n as f64 * 1e9),
+    }))
+}
+
 #[derive(Debug, Clone, serde::Serialize)]
 struct Ratio {
     network: String,
@@ -349,6 +406,7 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
     }
     let mut rows: Vec<Row> = Vec::new();
     let mut lanes = Vec::new();
+    let mut act_lanes = Vec::new();
     let mut notes = serde_json::Map::new();
     ctx.say(format!(
         "{:<6} {:<60} {:>8} {:>14} {:>9} {:>14} {:>9}",
@@ -407,6 +465,13 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
                 lanes.push(r);
             }
         }
+        if let Some(r) = activation_lanes(name, mlp, args.cpu_sub_batch, args.iters)? {
+            ctx.say(format!(
+                "cpu activation ({}), AVX-512 / AVX2 loops, {name}, {} values: forward {:.2}x, backward {:.2}x (same bits)",
+                r.activation, r.values, r.forward_speedup, r.backward_speedup
+            ));
+            act_lanes.push(r);
+        }
     }
     let mut ratios = Vec::new();
     for g in rows.iter().filter(|r| r.backend == "wgpu") {
@@ -462,6 +527,7 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
         "cpu_vs_gemm_reference": cpu_vs_gemm,
         "launch_overhead": launch,
         "cpu_hash_grid_lanes_over_scalar": lanes,
+        "cpu_activation_avx512_over_avx2": act_lanes,
     });
     crate::util::atomic_write(&args.out, serde_json::to_string_pretty(&report)?.as_bytes())?;
     ctx.say(format!("wrote {}", args.out.display()));

@@ -101,14 +101,30 @@ impl Activation {
         }
     }
 
-    /// `act(z)` over a slice; the match is outside the loops so each loop vectorises (with
-    /// AVX2/FMA when the CPU has them: runtime dispatch, the crate is built for baseline x86-64).
+    /// `act(z)` over a slice; the match is outside the loops so each loop vectorises, with the
+    /// widest vectors this CPU has ([`SimdLevel::detected`]: runtime dispatch, the crate is
+    /// built for baseline x86-64). Every level gives the same bits.
     pub fn forward_slice<T: Real>(&self, z: &[T]) -> Vec<T> {
+        self.forward_slice_at(SimdLevel::detected(), z)
+    }
+
+    /// [`Activation::forward_slice`] with the loops built for `level` (one this CPU lacks runs
+    /// at the widest one it has): `bench nn` times the levels against each other.
+    pub fn forward_slice_at<T: Real>(&self, level: SimdLevel, z: &[T]) -> Vec<T> {
         #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
-            // SAFETY: the CPU supports AVX2 and FMA (checked just above).
-            return unsafe { self.forward_slice_avx2(z) };
+        match level.min(SimdLevel::detected()) {
+            // SAFETY: the CPU has these features (`SimdLevel::detected` found them).
+            SimdLevel::Avx512 => return unsafe { self.forward_slice_avx512(z) },
+            SimdLevel::Avx2 => return unsafe { self.forward_slice_avx2(z) },
+            SimdLevel::Scalar => {}
         }
+        let _ = level;
+        self.forward_slice_impl(z)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx2,fma")]
+    unsafe fn forward_slice_avx512<T: Real>(&self, z: &[T]) -> Vec<T> {
         self.forward_slice_impl(z)
     }
 
@@ -122,7 +138,8 @@ impl Activation {
     fn forward_slice_impl<T: Real>(&self, z: &[T]) -> Vec<T> {
         let zero = T::zero();
         let mut out = vec![zero; z.len()];
-        // Explicit loops with inlined bodies (closures may stay out of line).
+        // Explicit loops with inlined bodies: a closure (`map`) is compiled without the
+        // caller's target features, and its loop does not vectorise.
         match *self {
             Activation::None => out.copy_from_slice(z),
             Activation::Relu => {
@@ -153,11 +170,26 @@ impl Activation {
 
     /// `dh · act'(z)` over slices (the backward of [`Activation::forward_slice`]).
     pub fn backward_slice<T: Real>(&self, z: &[T], dh: &[T]) -> Vec<T> {
+        self.backward_slice_at(SimdLevel::detected(), z, dh)
+    }
+
+    /// [`Activation::backward_slice`] with the loops built for `level` (see
+    /// [`Activation::forward_slice_at`]).
+    pub fn backward_slice_at<T: Real>(&self, level: SimdLevel, z: &[T], dh: &[T]) -> Vec<T> {
         #[cfg(target_arch = "x86_64")]
-        if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma") {
-            // SAFETY: the CPU supports AVX2 and FMA (checked just above).
-            return unsafe { self.backward_slice_avx2(z, dh) };
+        match level.min(SimdLevel::detected()) {
+            // SAFETY: the CPU has these features (`SimdLevel::detected` found them).
+            SimdLevel::Avx512 => return unsafe { self.backward_slice_avx512(z, dh) },
+            SimdLevel::Avx2 => return unsafe { self.backward_slice_avx2(z, dh) },
+            SimdLevel::Scalar => {}
         }
+        let _ = level;
+        self.backward_slice_impl(z, dh)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx512f,avx512vl,avx512dq,avx2,fma")]
+    unsafe fn backward_slice_avx512<T: Real>(&self, z: &[T], dh: &[T]) -> Vec<T> {
         self.backward_slice_impl(z, dh)
     }
 
@@ -260,6 +292,44 @@ fn softplus_derivative<T: Real>(z: T, beta: T) -> T {
         T::zero()
     } else {
         s
+    }
+}
+
+/// How wide the cpu backend's activation loops run: the same loops built for baseline x86-64,
+/// for AVX2 + FMA (8 f32 lanes) or for AVX-512 (16 lanes, and 32 vector registers, so the
+/// polynomials' constants stay in registers). Ordered from narrowest to widest. The loops do
+/// the same operations in the same order at every level (the fused multiply-adds are explicit
+/// `mul_add`s), so every level gives the same bits; only the speed differs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum SimdLevel {
+    Scalar,
+    Avx2,
+    Avx512,
+}
+
+impl SimdLevel {
+    pub const ALL: [SimdLevel; 3] = [SimdLevel::Scalar, SimdLevel::Avx2, SimdLevel::Avx512];
+
+    /// The widest level this CPU runs (detected once).
+    pub fn detected() -> SimdLevel {
+        #[cfg(target_arch = "x86_64")]
+        {
+            static LEVEL: std::sync::OnceLock<SimdLevel> = std::sync::OnceLock::new();
+            *LEVEL.get_or_init(|| {
+                let avx2 = std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma");
+                let avx512 = std::is_x86_feature_detected!("avx512f")
+                    && std::is_x86_feature_detected!("avx512vl")
+                    && std::is_x86_feature_detected!("avx512dq");
+                match (avx2, avx512) {
+                    (true, true) => SimdLevel::Avx512,
+                    (true, false) => SimdLevel::Avx2,
+                    _ => SimdLevel::Scalar,
+                }
+            })
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        SimdLevel::Scalar
     }
 }
 
@@ -1626,6 +1696,42 @@ mod tests {
         assert!(act.forward_slice(&[f32::NAN])[0].is_nan(), "NaN must reach the step's check");
         assert!(act.forward(f32::NAN).is_nan());
         assert!(act.backward_slice(&[f32::NAN], &[1.0])[0].is_nan());
+    }
+
+    #[test]
+    fn every_simd_level_gives_the_scalar_bits() {
+        // The AVX2 and AVX-512 builds of the activation loops against the baseline build, on
+        // the values a network meets, the cuts of softplus (βz = 20, −80) and the specials.
+        let mut z: Vec<f32> = (0..40_001).map(|i| (i as f32 - 20_000.0) * 1.7e-3).collect();
+        z.extend([-1e30, -1e5, -0.8, -0.80001, 0.2, 0.20001, 1e5, 1e30, f32::MIN_POSITIVE, -0.0, f32::NAN, f32::INFINITY, f32::NEG_INFINITY]);
+        let dh: Vec<f32> = (0..z.len()).map(|i| ((i * 7919) % 1000) as f32 * 2e-3 - 1.0).collect();
+        let acts = [
+            Activation::None,
+            Activation::Relu,
+            Activation::LeakyRelu(0.01),
+            Activation::Softplus { beta: 100.0 },
+            Activation::Softplus { beta: 1.0 },
+            Activation::Sigmoid,
+        ];
+        let bits32 = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        let bits64 = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        let z64: Vec<f64> = z.iter().map(|&v| v as f64).collect();
+        let dh64: Vec<f64> = dh.iter().map(|&v| v as f64).collect();
+        eprintln!("this CPU runs the activation loops at {:?}", SimdLevel::detected());
+        for act in acts {
+            let want = bits32(&act.forward_slice_at(SimdLevel::Scalar, &z));
+            let want_d = bits32(&act.backward_slice_at(SimdLevel::Scalar, &z, &dh));
+            let want64 = bits64(&act.forward_slice_at(SimdLevel::Scalar, &z64));
+            let want64_d = bits64(&act.backward_slice_at(SimdLevel::Scalar, &z64, &dh64));
+            for level in SimdLevel::ALL {
+                assert_eq!(bits32(&act.forward_slice_at(level, &z)), want, "{act:?} forward at {level:?}");
+                assert_eq!(bits32(&act.backward_slice_at(level, &z, &dh)), want_d, "{act:?} backward at {level:?}");
+                assert_eq!(bits64(&act.forward_slice_at(level, &z64)), want64, "{act:?} f64 forward at {level:?}");
+                assert_eq!(bits64(&act.backward_slice_at(level, &z64, &dh64)), want64_d, "{act:?} f64 backward at {level:?}");
+            }
+            // The default dispatch is the detected level's.
+            assert_eq!(bits32(&act.forward_slice(&z)), want, "{act:?} forward");
+        }
     }
 
     #[test]
