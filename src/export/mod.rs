@@ -117,6 +117,25 @@ impl AssetArgs {
             (None, None) => CaptureUnits::from_scale(scale),
         }
     }
+
+    /// The export of a capture's asset: `mesh`, the asset flags (name, texture, .usdz), and the
+    /// capture's scale ([`AssetArgs::capture_units`] for a scene normalised by `scale`, or
+    /// `--height`; said on `ctx`). `default_name` names the asset where `--name` does not.
+    pub fn capture_export_config(&self, scale: f64, mesh: MeshConfig, default_name: &str, provenance: serde_json::Value, ctx: &crate::context::Context) -> ExportConfig {
+        let units = self.capture_units(scale);
+        ctx.say(format!("units: {}", units.why));
+        ExportConfig {
+            name: self.name.clone().unwrap_or_else(|| default_name.to_string()),
+            mesh,
+            texture: self.texture,
+            metres_per_unit: (units.metres_per_unit / scale) as f32,
+            capture_units: Some(units),
+            height_m: self.height.map(|h| h as f32),
+            usdz: self.usdz,
+            provenance,
+            ..Default::default()
+        }
+    }
 }
 
 /// `--metres-per-unit` and `--height`: a positive, finite number of metres.

@@ -18,7 +18,7 @@ use super::stage1::{scene_key, InitMode, Model, Preset, Stage1Config, StepStats,
 use crate::backend::gpu::KernelTime;
 use crate::backend::{Backend, BackendError};
 use crate::context::Context;
-use crate::export::{AssetArgs, ExportConfig, ExportReport};
+use crate::export::{AssetArgs, ExportReport};
 use crate::mesh::field::{Aabb, MaterialField, MaterialSamples, SdfField as MeshSdf, SdfSamples};
 use crate::mesh::MeshConfig;
 use crate::render::{trace, Rays, TraceConfig, TraceMode};
@@ -1245,26 +1245,16 @@ pub fn export_stage1(backend: &Backend, trainer: &Trainer, rs: &RunScene, asset:
     let cfg = &trainer.cfg;
     let sdf = TrainedSdf::new(backend, trainer.model(), rotation).context("meshing the trained SDF")?;
     let material = RadiancePreview { model: trainer.model(), rotation, roughness: 0.5, feature: 16.0 * cfg.sizes.pixel_footprint };
-    let units = asset.capture_units(rs.scale);
-    ctx.say(format!("units: {}", units.why));
-    let ecfg = ExportConfig {
-        name: asset.name.clone().unwrap_or_else(|| default_name.to_string()),
-        mesh: MeshConfig { face_tolerance_deg: asset.face_tolerance_deg(), ..trained_mesh_config(&cfg.sizes, asset.resolution, asset.error_bound) },
-        texture: asset.texture,
-        metres_per_unit: (units.metres_per_unit / rs.scale) as f32,
-        capture_units: Some(units),
-        height_m: asset.height.map(|h| h as f32),
-        usdz: asset.usdz,
-        provenance: serde_json::json!({
-            "method": "stage 1 (trained SDF + radiance preview); light/material not yet separated",
-            "scene": rs.scene.display().to_string(),
-            "format": rs.format,
-            "preset": cfg.preset,
-            "tracing": cfg.trace.mode,
-            "steps": trainer.step,
-        }),
-        ..Default::default()
-    };
+    let mesh = MeshConfig { face_tolerance_deg: asset.face_tolerance_deg(), ..trained_mesh_config(&cfg.sizes, asset.resolution, asset.error_bound) };
+    let provenance = serde_json::json!({
+        "method": "stage 1 (trained SDF + radiance preview); light/material not yet separated",
+        "scene": rs.scene.display().to_string(),
+        "format": rs.format,
+        "preset": cfg.preset,
+        "tracing": cfg.trace.mode,
+        "steps": trainer.step,
+    });
+    let ecfg = asset.capture_export_config(rs.scale, mesh, default_name, provenance, ctx);
     let env = super::preview::uniform_environment();
     let t = Instant::now();
     let report = crate::export::export_asset_with(backend, &sdf, &material, Some(&env), &ecfg, &asset.out, &ctx.spinner("export"))?;

@@ -16,7 +16,7 @@ use super::stage1::{scene_key, Model as Stage1Model, Preset, TrainData, Trainer,
 use super::stage2::{shade_f64, Materials, BoundaryMode, DecoderMode, IndirectMode, RoughnessMode, Stage2Config, Stage2Model, Stage2Stats, Stage2Trainer, SurfaceCache, CHECKPOINT2};
 use crate::backend::{Backend, BackendError};
 use crate::context::Context;
-use crate::export::{AssetArgs, ExportConfig, ExportReport};
+use crate::export::{AssetArgs, ExportReport};
 use crate::mesh::field::{MaterialField, MaterialSamples};
 use crate::render::{trace, Rays, SdfBatch, TraceConfig};
 use crate::scene::{Camera, Downscale, Format, ReadOptions, View};
@@ -882,27 +882,17 @@ pub fn export_stage2(backend: &Backend, s1: &Trainer, s2: &Stage2Trainer, rs: &R
     let refined = stage2_geometry(s1, s2)?;
     let sdf = TrainedSdf::new(backend, refined.as_ref().unwrap_or(s1.model()), rotation).context("meshing the trained SDF")?;
     let material = LearnedMaterial { model: &s2.model, rotation, feature: 16.0 * cfg.sizes.pixel_footprint };
-    let units = asset.capture_units(rs.scale);
-    ctx.say(format!("units: {}", units.why));
-    let ecfg = ExportConfig {
-        name: asset.name.clone().unwrap_or_else(|| default_name.to_string()),
-        mesh: crate::mesh::MeshConfig { face_tolerance_deg: asset.face_tolerance_deg(), ..super::cli::trained_mesh_config(&cfg.sizes, asset.resolution, asset.error_bound) },
-        texture: asset.texture,
-        metres_per_unit: (units.metres_per_unit / rs.scale) as f32,
-        capture_units: Some(units),
-        height_m: asset.height.map(|h| h as f32),
-        usdz: asset.usdz,
-        provenance: serde_json::json!({
-            "method": "stage 1 (trained SDF) + stage 2 (SG environment, material autoencoder, indirect light)",
-            "scene": rs.scene.display().to_string(),
-            "format": rs.format,
-            "preset": cfg.preset,
-            "indirect": s2.model.cfg.indirect,
-            "lobes": s2.model.cfg.lobes,
-            "steps": { "geometry": s1.step, "material": s2.step },
-        }),
-        ..Default::default()
-    };
+    let mesh = crate::mesh::MeshConfig { face_tolerance_deg: asset.face_tolerance_deg(), ..super::cli::trained_mesh_config(&cfg.sizes, asset.resolution, asset.error_bound) };
+    let provenance = serde_json::json!({
+        "method": "stage 1 (trained SDF) + stage 2 (SG environment, material autoencoder, indirect light)",
+        "scene": rs.scene.display().to_string(),
+        "format": rs.format,
+        "preset": cfg.preset,
+        "indirect": s2.model.cfg.indirect,
+        "lobes": s2.model.cfg.lobes,
+        "steps": { "geometry": s1.step, "material": s2.step },
+    });
+    let ecfg = asset.capture_export_config(rs.scale, mesh, default_name, provenance, ctx);
     let env = s2.model.env_sgs(rotation);
     let t = Instant::now();
     let report = crate::export::export_asset_with(backend, &sdf, &material, Some(&env), &ecfg, &asset.out, &ctx.spinner("export"))?;

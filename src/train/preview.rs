@@ -28,7 +28,6 @@ use super::hull::{carve, signed_distance, Grid3, MaskView};
 use super::photo::{project_colour, PhotoView, Pixels};
 use crate::backend::{Backend, BackendError};
 use crate::context::Context;
-use crate::export::ExportConfig;
 use crate::mesh::field::{Aabb, MaterialField, MaterialSamples, SdfField, SdfSamples};
 use crate::mesh::MeshConfig;
 use crate::scene::{ReadOptions, Scene, Split, View};
@@ -440,33 +439,22 @@ pub fn run_preview(args: &BakeArgs, ctx: &Context) -> anyhow::Result<()> {
     };
 
     // 4–5. Export.
-    let scale = scene.normalisation.scale;
     let name = asset_name(args);
-    let units = args.asset.capture_units(scale);
-    ctx.say(format!("units: {}", units.why));
-    let cfg = ExportConfig {
-        name: name.clone(),
-        // The hull is known to a voxel: bound the simplification by one hull voxel.
-        mesh: MeshConfig {
-            resolution: args.asset.resolution.unwrap_or(128),
-            error_bound: Some(args.asset.error_bound.unwrap_or(2.0 / res as f32)),
-            face_tolerance_deg: args.asset.face_tolerance_deg(),
-            ..Default::default()
-        },
-        texture: args.asset.texture,
-        metres_per_unit: (units.metres_per_unit / scale) as f32,
-        capture_units: Some(units),
-        height_m: args.asset.height.map(|h| h as f32),
-        usdz: args.asset.usdz,
-        provenance: serde_json::json!({
-            "method": "preview bake (visual hull + photo projection, no training)",
-            "scene": args.scene.display().to_string(),
-            "format": scene.format.name(),
-            "views": views.len(),
-            "hull_resolution": res,
-        }),
+    // The hull is known to a voxel: bound the simplification by one hull voxel.
+    let mesh = MeshConfig {
+        resolution: args.asset.resolution.unwrap_or(128),
+        error_bound: Some(args.asset.error_bound.unwrap_or(2.0 / res as f32)),
+        face_tolerance_deg: args.asset.face_tolerance_deg(),
         ..Default::default()
     };
+    let provenance = serde_json::json!({
+        "method": "preview bake (visual hull + photo projection, no training)",
+        "scene": args.scene.display().to_string(),
+        "format": scene.format.name(),
+        "views": views.len(),
+        "hull_resolution": res,
+    });
+    let cfg = args.asset.capture_export_config(scene.normalisation.scale, mesh, &name, provenance, ctx);
     let env = uniform_environment();
     let t = Instant::now();
     let report = crate::export::export_asset_with(&backend, &hull, &material, Some(&env), &cfg, &args.asset.out, &ctx.spinner("export"))?;
