@@ -220,8 +220,17 @@ fn a_test_view_left_out_of_training_is_still_relit() {
 #[test]
 fn stage_two_bad_inputs_give_clear_errors() {
     let dir = tempfile::tempdir().unwrap();
-    // No stage-1 run.
+    // Stage 1's step flags on stage 2 (they were silently ignored: `--iterations 4800` trained
+    // the preset's 2400 steps): a usage error naming the stage-2 flags, before anything runs.
     let empty = dir.path().join("empty");
+    for flags in [&["--iterations", "5"][..], &["--rays", "64", "--iterations", "5"]] {
+        let o = stage2(&empty, flags);
+        assert_eq!(o.status.code(), Some(2), "{}", text(&o));
+        assert!(text(&o).contains("--material-iterations") && text(&o).contains(flags[0]), "{}", text(&o));
+        assert!(!empty.exists(), "nothing is written on a usage error");
+    }
+
+    // No stage-1 run.
     let o = stage2(&empty, &["--material-iterations", "1"]);
     assert_eq!(o.status.code(), Some(1), "{}", text(&o));
     assert!(text(&o).contains("checkpoint.safetensors") && text(&o).contains("train the geometry first"), "{}", text(&o));

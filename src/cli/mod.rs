@@ -4,7 +4,7 @@
 
 use std::process::ExitCode;
 
-use clap::{Parser, Subcommand};
+use clap::{CommandFactory, Parser, Subcommand};
 
 use crate::backend::BackendChoice;
 pub use crate::context::Context;
@@ -102,6 +102,17 @@ fn init_logging(g: &GlobalArgs) {
     let _ = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(ansi).with_target(false).try_init();
 }
 
+impl Cli {
+    /// A combination of flags that clap's declarations cannot refuse (see each command's
+    /// `usage_problem`).
+    fn usage_problem(&self) -> Option<String> {
+        match &self.command {
+            Command::Train(a) => a.usage_problem(),
+            _ => None,
+        }
+    }
+}
+
 /// Exit code for data/runtime errors. Usage errors exit with clap's 2.
 pub const EXIT_DATA: u8 = 1;
 pub const EXIT_USAGE: u8 = 2;
@@ -115,6 +126,10 @@ pub fn main() -> ExitCode {
             return if e.use_stderr() { ExitCode::from(EXIT_USAGE) } else { ExitCode::SUCCESS };
         }
     };
+    if let Some(problem) = cli.usage_problem() {
+        let _ = Cli::command().error(clap::error::ErrorKind::ArgumentConflict, problem).print();
+        return ExitCode::from(EXIT_USAGE);
+    }
     init_logging(&cli.global);
     crate::util::keep_freed_memory();
     // Mesa's Vulkan drivers print "error: XDG_RUNTIME_DIR is invalid or not set" to stderr while

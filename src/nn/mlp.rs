@@ -137,34 +137,42 @@ impl Activation {
     #[inline(always)]
     fn forward_slice_impl<T: Real>(&self, z: &[T]) -> Vec<T> {
         let zero = T::zero();
-        let mut out = vec![zero; z.len()];
-        // Explicit loops with inlined bodies: a closure (`map`) is compiled without the
-        // caller's target features, and its loop does not vectorise.
+        // Written once into fresh capacity (zeroing it first was a memset of every activation).
+        // Explicit loops with inlined bodies: a closure (`map`) is compiled without the caller's
+        // target features, and its loop does not vectorise.
+        let mut out: Vec<T> = Vec::with_capacity(z.len());
+        let slots = &mut out.spare_capacity_mut()[..z.len()];
         match *self {
-            Activation::None => out.copy_from_slice(z),
+            Activation::None => {
+                for (o, &v) in slots.iter_mut().zip(z) {
+                    o.write(v);
+                }
+            }
             Activation::Relu => {
-                for (o, &v) in out.iter_mut().zip(z) {
-                    *o = v.max_(zero);
+                for (o, &v) in slots.iter_mut().zip(z) {
+                    o.write(v.max_(zero));
                 }
             }
             Activation::LeakyRelu(s) => {
                 let s = T::from_f64(s as f64);
-                for (o, &v) in out.iter_mut().zip(z) {
-                    *o = if v > zero { v } else { s * v };
+                for (o, &v) in slots.iter_mut().zip(z) {
+                    o.write(if v > zero { v } else { s * v });
                 }
             }
             Activation::Softplus { beta } => {
                 let (b, inv_b) = (T::from_f64(beta as f64), T::from_f64(1.0 / beta as f64));
-                for (o, &v) in out.iter_mut().zip(z) {
-                    *o = softplus(v, b, inv_b);
+                for (o, &v) in slots.iter_mut().zip(z) {
+                    o.write(softplus(v, b, inv_b));
                 }
             }
             Activation::Sigmoid => {
-                for (o, &v) in out.iter_mut().zip(z) {
-                    *o = sigmoid(v);
+                for (o, &v) in slots.iter_mut().zip(z) {
+                    o.write(sigmoid(v));
                 }
             }
         }
+        // SAFETY: every one of the first z.len() slots was written just above.
+        unsafe { out.set_len(z.len()) };
         out
     }
 
@@ -202,34 +210,42 @@ impl Activation {
     #[inline(always)]
     fn backward_slice_impl<T: Real>(&self, z: &[T], dh: &[T]) -> Vec<T> {
         let (zero, one) = (T::zero(), T::one());
-        let mut out = vec![zero; z.len()];
-        let it = out.iter_mut().zip(z).zip(dh);
+        assert_eq!(z.len(), dh.len(), "activation backward: pre-activations and gradients differ in length");
+        // As the forward: written once into fresh capacity, explicit loops.
+        let mut out: Vec<T> = Vec::with_capacity(z.len());
+        let it = out.spare_capacity_mut()[..z.len()].iter_mut().zip(z).zip(dh);
         match *self {
-            Activation::None => out.copy_from_slice(dh),
+            Activation::None => {
+                for ((o, _), &g) in it {
+                    o.write(g);
+                }
+            }
             Activation::Relu => {
                 for ((o, &v), &g) in it {
-                    *o = if v > zero { g } else { zero };
+                    o.write(if v > zero { g } else { zero });
                 }
             }
             Activation::LeakyRelu(s) => {
                 let s = T::from_f64(s as f64);
                 for ((o, &v), &g) in it {
-                    *o = if v > zero { g } else { s * g };
+                    o.write(if v > zero { g } else { s * g });
                 }
             }
             Activation::Softplus { beta } => {
                 let b = T::from_f64(beta as f64);
                 for ((o, &v), &g) in it {
-                    *o = g * softplus_derivative(v, b);
+                    o.write(g * softplus_derivative(v, b));
                 }
             }
             Activation::Sigmoid => {
                 for ((o, &v), &g) in it {
                     let s = sigmoid(v);
-                    *o = g * s * (one - s);
+                    o.write(g * s * (one - s));
                 }
             }
         }
+        // SAFETY: every one of the first z.len() slots was written just above (dh has as many).
+        unsafe { out.set_len(z.len()) };
         out
     }
 
@@ -861,10 +877,11 @@ fn forward_chunk<T: Real>(mlp: &Mlp, dense: &[T], x: &[T], keep: bool) -> (Vec<T
             h
         };
         let (m, k, n) = (rows, lay.in_dim, lay.out_dim);
-        let mut z = vec![T::zero(); m * n];
+        // Each row starts as the bias (written once: no zeroing first).
         let bias = &dense[lay.dense_b..lay.dense_b + n];
-        for row in z.chunks_exact_mut(n) {
-            row.copy_from_slice(bias);
+        let mut z = Vec::with_capacity(m * n);
+        for _ in 0..m {
+            z.extend_from_slice(bias);
         }
         // z = u·Wᵀ + b: B(k, j) = W[j][k].
         T::gemm(

@@ -1061,6 +1061,29 @@ pub fn run_preset(run_dir: &Path) -> Option<Preset> {
     serde_json::from_value(v.get("config")?.get("preset")?.clone()).ok()
 }
 
+impl TrainArgs {
+    /// Flags that would be silently ignored: `--stage material` trains no stage-1 step, so
+    /// `--iterations` and `--rays` (stage 1's) say nothing to it; stage 2 takes
+    /// `--material-iterations` and `--material-batch`. A usage error (exit 2), checked before
+    /// anything runs.
+    pub fn usage_problem(&self) -> Option<String> {
+        if self.stage != Stage::Material {
+            return None;
+        }
+        let given: Vec<&str> = [(self.opts.iterations.is_some(), "--iterations"), (self.opts.rays.is_some(), "--rays")]
+            .into_iter()
+            .filter_map(|(g, f)| g.then_some(f))
+            .collect();
+        (!given.is_empty()).then(|| {
+            format!(
+                "{} {} stage 1's steps and `--stage material` trains only stage 2: use --material-iterations / --material-batch",
+                given.join(" and "),
+                if given.len() == 1 { "sets" } else { "set" }
+            )
+        })
+    }
+}
+
 pub fn run(args: &TrainArgs, ctx: &Context) -> anyhow::Result<()> {
     let backend = ctx.backend()?;
     // Stage 2 and a resumed run follow the run's preset unless `--preset` says otherwise (then
