@@ -283,9 +283,11 @@ pub fn hemisphere_int<S: Scalar>(lambda: S, cos_beta: S) -> S {
         (b - inv_a) / ((S::c(1.0) - inv_a) * (b + S::c(1.0)))
     };
     // A_b = 2π/λ (e^{−λ} − e^{−2λ}) = 2π/λ e^{−λ}(1 − e^{−λ}); A_u = 2π/λ (1 − e^{−λ}).
-    let om = one_minus_exp_neg(l);
+    // e^{−λ} once for both (as `one_minus_exp_neg`: its series below 1e-4).
+    let e_l = (-l).exp();
+    let om = if l.val() < 1e-4 { one_minus_exp_neg(l) } else { S::c(1.0) - e_l };
     let a_u = S::c(2.0 * PI) * om * inv;
-    let a_b = a_u * (-l).exp();
+    let a_b = a_u * e_l;
     a_b * (S::c(1.0) - s) + a_u * s
 }
 
