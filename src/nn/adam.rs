@@ -17,6 +17,7 @@
 //! grid's entries, and the untouched ones then cost a read of their gradient instead of a full
 //! update (their moments do not decay while no ray reaches them).
 
+use crate::nn::simd::SimdLevel;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -208,8 +209,9 @@ fn step_consts(cfg: &AdamConfig, lr: f32, norm: f64, t: u64) -> StepConsts {
     }
 }
 
-/// The element-wise update (shared by the cpu twin and documented for the WGSL one).
-#[inline]
+/// The element-wise update, one entry at a time: the reference the cpu twin's slice loop
+/// ([`update_slices`]) is tested against bit for bit, and what `shaders/adam.wgsl` does.
+#[cfg(test)]
 fn update(cfg: &AdamConfig, k: &StepConsts, p: &mut f32, g: f32, m: &mut f32, v: &mut f32) {
     if cfg.skip_zero_gradients && g == 0.0 {
         return;
@@ -494,13 +496,65 @@ pub fn adam_update_host(
         .zip(grads.par_chunks(CH))
         .zip(m.par_chunks_mut(CH))
         .zip(v.par_chunks_mut(CH))
-        .for_each(|(((p, g), m), v)| {
-            for i in 0..p.len() {
-                update(cfg, &k, &mut p[i], g[i], &mut m[i], &mut v[i]);
-            }
-        });
+        .for_each(|(((p, g), m), v)| update_slices(SimdLevel::detected(), cfg, &k, p, g, m, v));
     state.step += 1;
     Ok(k.scale)
+}
+
+/// One Adam step (the first, unclipped) over host slices with the loop built for `level`: what
+/// `bench nn` times level against level.
+pub(crate) fn update_host_at(level: SimdLevel, cfg: &AdamConfig, params: &mut [f32], grads: &[f32], m: &mut [f32], v: &mut [f32]) {
+    let k = step_consts(cfg, cfg.lr, 0.0, 1);
+    update_slices(level, cfg, &k, params, grads, m, v)
+}
+
+/// [`update`] over slices, with the loop built for `level` (one this CPU lacks runs at the
+/// widest it has). Every level gives the same bits.
+fn update_slices(level: SimdLevel, cfg: &AdamConfig, k: &StepConsts, p: &mut [f32], g: &[f32], m: &mut [f32], v: &mut [f32]) {
+    #[cfg(target_arch = "x86_64")]
+    match level.min(SimdLevel::detected()) {
+        // SAFETY: the CPU has these features (`SimdLevel::detected` found them).
+        SimdLevel::Avx512 => return unsafe { update_slices_avx512(cfg, k, p, g, m, v) },
+        SimdLevel::Avx2 => return unsafe { update_slices_avx2(cfg, k, p, g, m, v) },
+        SimdLevel::Scalar => {}
+    }
+    let _ = level;
+    update_slices_impl(cfg, k, p, g, m, v)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx512dq,avx2,fma")]
+unsafe fn update_slices_avx512(cfg: &AdamConfig, k: &StepConsts, p: &mut [f32], g: &[f32], m: &mut [f32], v: &mut [f32]) {
+    update_slices_impl(cfg, k, p, g, m, v)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn update_slices_avx2(cfg: &AdamConfig, k: &StepConsts, p: &mut [f32], g: &[f32], m: &mut [f32], v: &mut [f32]) {
+    update_slices_impl(cfg, k, p, g, m, v)
+}
+
+/// [`update`]'s arithmetic on every entry, its result kept where [`update`] would write it
+/// (a select, not a branch, so the loop vectorises; a skipped entry's values are computed and
+/// dropped). The same operations in the same order as [`update`]: the same bits.
+#[inline(always)]
+fn update_slices_impl(cfg: &AdamConfig, k: &StepConsts, p: &mut [f32], g: &[f32], m: &mut [f32], v: &mut [f32]) {
+    let n = p.len().min(g.len()).min(m.len()).min(v.len());
+    let (p, g, m, v) = (&mut p[..n], &g[..n], &mut m[..n], &mut v[..n]);
+    let skip_zero = cfg.skip_zero_gradients;
+    for i in 0..n {
+        let g0 = g[i];
+        let gs = g0 * k.scale;
+        let mi = cfg.beta1 * m[i] + (1.0 - cfg.beta1) * gs;
+        let vi = cfg.beta2 * v[i] + (1.0 - cfg.beta2) * gs * gs;
+        let m_hat = mi / k.bc1;
+        let v_hat = vi / k.bc2;
+        let pi = p[i] - k.lr * (m_hat / (v_hat.sqrt() + cfg.eps) + cfg.weight_decay * p[i]);
+        let keep = skip_zero && g0 == 0.0;
+        m[i] = if keep { m[i] } else { mi };
+        v[i] = if keep { v[i] } else { vi };
+        p[i] = if keep { p[i] } else { pi };
+    }
 }
 
 /// The global L2 norm of host gradients, or None when any value is non-finite (the step must
@@ -523,18 +577,15 @@ fn grad_stats_cpu(g: &[f32]) -> (f64, u64) {
     // Blocks of 4096 merged in order: the norm (and the clip scale) has the same bits on any
     // thread count.
     const BLOCK: usize = 4096;
+    let level = SimdLevel::detected();
     crate::util::fold_ordered(
         g.len().div_ceil(BLOCK),
         1,
         || (0.0f64, 0u64),
         |acc, b| {
-            for &x in &g[b * BLOCK..((b + 1) * BLOCK).min(g.len())] {
-                if x.is_finite() {
-                    acc.0 += (x as f64) * (x as f64);
-                } else {
-                    acc.1 += 1;
-                }
-            }
+            let (s, n) = block_stats(level, &g[b * BLOCK..((b + 1) * BLOCK).min(g.len())]);
+            acc.0 += s;
+            acc.1 += n;
         },
         |a, b| {
             a.0 += b.0;
@@ -543,9 +594,112 @@ fn grad_stats_cpu(g: &[f32]) -> (f64, u64) {
     )
 }
 
+/// Lanes of [`block_stats`]: this many running sums, added together in a fixed order at the end.
+const STAT_LANES: usize = 16;
+
+/// One block's sum of squares (f64) and non-finite count, with the loop built for `level`.
+/// Sixteen running sums (value `i` into sum `i % 16`), not one: a single sum is a chain of
+/// dependent additions, each waiting for the last (this check was 10% of a stage-1 step on a
+/// 2^19-entry hash grid). The same bits at every level and on any thread count.
+fn block_stats(level: SimdLevel, g: &[f32]) -> (f64, u64) {
+    #[cfg(target_arch = "x86_64")]
+    match level.min(SimdLevel::detected()) {
+        // SAFETY: the CPU has these features (`SimdLevel::detected` found them).
+        SimdLevel::Avx512 => return unsafe { block_stats_avx512(g) },
+        SimdLevel::Avx2 => return unsafe { block_stats_avx2(g) },
+        SimdLevel::Scalar => {}
+    }
+    let _ = level;
+    block_stats_impl(g)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512vl,avx512dq,avx2,fma")]
+unsafe fn block_stats_avx512(g: &[f32]) -> (f64, u64) {
+    block_stats_impl(g)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn block_stats_avx2(g: &[f32]) -> (f64, u64) {
+    block_stats_impl(g)
+}
+
+#[inline(always)]
+fn block_stats_impl(g: &[f32]) -> (f64, u64) {
+    let mut sums = [0.0f64; STAT_LANES];
+    let mut bad = [0u32; STAT_LANES];
+    let mut chunks = g.chunks_exact(STAT_LANES);
+    for c in &mut chunks {
+        for j in 0..STAT_LANES {
+            let x = c[j];
+            let ok = x.abs() < f32::INFINITY;
+            let d = x as f64;
+            sums[j] += if ok { d * d } else { 0.0 };
+            bad[j] += u32::from(!ok);
+        }
+    }
+    for (j, &x) in chunks.remainder().iter().enumerate() {
+        let ok = x.abs() < f32::INFINITY;
+        let d = x as f64;
+        sums[j] += if ok { d * d } else { 0.0 };
+        bad[j] += u32::from(!ok);
+    }
+    let mut s = 0.0f64;
+    for v in sums {
+        s += v;
+    }
+    (s, bad.iter().map(|&b| b as u64).sum())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn every_simd_level_gives_the_one_entry_update_and_the_same_stats() {
+        // Entries with zero gradients (kept where sparse), signs, magnitudes over 1e-30..1e3,
+        // moments already under way; with and without sparse updates, clipping and decay.
+        let n = 10_007;
+        let g: Vec<f32> = (0..n).map(|i| if i % 3 == 0 { 0.0 } else { ((i as f32) * 0.37).sin() * 10f32.powi((i % 34) as i32 - 30) }).collect();
+        let p0: Vec<f32> = (0..n).map(|i| ((i as f32) * 0.11).cos()).collect();
+        let m0: Vec<f32> = (0..n).map(|i| ((i as f32) * 0.05).sin() * 1e-3).collect();
+        let v0: Vec<f32> = (0..n).map(|i| ((i as f32) * 0.07).sin().abs() * 1e-5).collect();
+        for (skip, decay, scale) in [(true, 0.0, 1.0), (false, 0.0, 1.0), (true, 1e-2, 0.37)] {
+            let cfg = AdamConfig { skip_zero_gradients: skip, weight_decay: decay, ..AdamConfig::with_lr(1e-2) };
+            let k = StepConsts { lr: 1e-2, scale, bc1: 0.19, bc2: 0.0199 };
+            let (mut pw, mut mw, mut vw) = (p0.clone(), m0.clone(), v0.clone());
+            for i in 0..n {
+                update(&cfg, &k, &mut pw[i], g[i], &mut mw[i], &mut vw[i]);
+            }
+            for level in SimdLevel::ALL {
+                let (mut p, mut m, mut v) = (p0.clone(), m0.clone(), v0.clone());
+                update_slices(level, &cfg, &k, &mut p, &g, &mut m, &mut v);
+                let bits = |x: &[f32]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&p), bits(&pw), "params at {level:?}, skip {skip}");
+                assert_eq!(bits(&m), bits(&mw), "first moments at {level:?}, skip {skip}");
+                assert_eq!(bits(&v), bits(&vw), "second moments at {level:?}, skip {skip}");
+            }
+            if skip {
+                assert!((0..n).step_by(3).all(|i| pw[i] == p0[i] && mw[i] == m0[i]), "zero gradients leave entries alone");
+            }
+        }
+        // The gradient check: the same sum and count at every level; non-finite values counted,
+        // the sum within f64 rounding of the plain one.
+        let mut g = g;
+        g[5] = f32::NAN;
+        g[77] = f32::INFINITY;
+        g[4095] = f32::NEG_INFINITY;
+        let want: f64 = g.iter().filter(|x| x.is_finite()).map(|&x| (x as f64) * (x as f64)).sum();
+        let (s0, n0) = block_stats(SimdLevel::Scalar, &g);
+        assert_eq!(n0, 3);
+        assert!(((s0 - want) / want).abs() < 1e-12, "{s0} vs {want}");
+        for level in SimdLevel::ALL {
+            let (s, c) = block_stats(level, &g);
+            assert_eq!((s.to_bits(), c), (s0.to_bits(), n0), "block stats at {level:?}");
+        }
+        assert_eq!(grad_stats_cpu(&g).1, 3);
+    }
 
     #[test]
     fn schedules() {

@@ -203,7 +203,7 @@ struct ActivationLanes {
 /// Times the hidden activation's forward and backward at AVX2 and at AVX-512, alternating within
 /// each round, and checks that they agree bit for bit. None on a CPU without AVX-512.
 fn activation_lanes(network: &str, mlp: &Mlp, rows: usize, iters: usize) -> anyhow::Result<Option<ActivationLanes>> {
-    use crate::nn::mlp::SimdLevel;
+    use crate::nn::simd::SimdLevel;
     if SimdLevel::detected() < SimdLevel::Avx512 {
         return Ok(None);
     }
@@ -240,6 +240,50 @@ fn activation_lanes(network: &str, mlp: &Mlp, rows: usize, iters: usize) -> anyh
         backward_speedup: best[1][0] / best[1][1],
         ns_per_value: [0, 1].map(|p| best[p][1] / n as f64 * 1e9),
     }))
+}
+
+/// The cpu backend's Adam step over a network's hash table (sparse: a third of the gradient's
+/// entries zero) built for the widest vectors this CPU has against the baseline build.
+#[derive(Debug, Clone, serde::Serialize)]
+struct AdamLanes {
+    network: String,
+    level: crate::nn::simd::SimdLevel,
+    entries: usize,
+    /// Baseline time over the widest level's (best of the rounds).
+    speedup: f64,
+    ns_per_entry: f64,
+}
+
+/// Times one Adam step over `entries` at the baseline build and at the detected level,
+/// alternating, and checks the same bits. None where the CPU has no wider level.
+fn adam_lanes(network: &str, entries: usize, iters: usize) -> anyhow::Result<Option<AdamLanes>> {
+    use crate::nn::simd::SimdLevel;
+    let level = SimdLevel::detected();
+    if level == SimdLevel::Scalar || entries == 0 {
+        return Ok(None);
+    }
+    let cfg = crate::nn::adam::AdamConfig { skip_zero_gradients: true, ..crate::nn::adam::AdamConfig::with_lr(1e-2) };
+    let mut rng = crate::util::rng(6);
+    let mut grads = uniform(&mut rng, entries, 1e-3);
+    for g in grads.iter_mut().step_by(3) {
+        *g = 0.0;
+    }
+    let p0 = uniform(&mut rng, entries, 1e-2);
+    let mut best = [f64::INFINITY; 2];
+    for _ in 0..iters.max(2) {
+        let mut outs: [Vec<f32>; 2] = Default::default();
+        for (i, l) in [SimdLevel::Scalar, level].into_iter().enumerate() {
+            let (mut p, mut m, mut v) = (p0.clone(), vec![0.0; entries], vec![0.0; entries]);
+            let t = Instant::now();
+            crate::nn::adam::update_host_at(l, &cfg, &mut p, &grads, &mut m, &mut v);
+            best[i] = best[i].min(t.elapsed().as_secs_f64());
+            outs[i] = p;
+        }
+        if outs[0].iter().zip(&outs[1]).any(|(a, b)| a.to_bits() != b.to_bits()) {
+            anyhow::bail!("{network} Adam: the {level:?} loop and the baseline loop disagree");
+        }
+    }
+    Ok(Some(AdamLanes { network: network.into(), level, entries, speedup: best[0] / best[1], ns_per_entry: best[1] / entries as f64 * 1e9 }))
 }
 
 #[derive(Debug, Clone, serde::Serialize)]
@@ -407,6 +451,7 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
     let mut rows: Vec<Row> = Vec::new();
     let mut lanes = Vec::new();
     let mut act_lanes = Vec::new();
+    let mut adam_lanes_out = Vec::new();
     let mut notes = serde_json::Map::new();
     ctx.say(format!(
         "{:<6} {:<60} {:>8} {:>14} {:>9} {:>14} {:>9}",
@@ -472,6 +517,13 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
             ));
             act_lanes.push(r);
         }
+        if let Some(r) = adam_lanes(name, net.encoding.num_params(), args.iters)? {
+            ctx.say(format!(
+                "cpu Adam step, {:?} / baseline loop, {name}, {} entries (a third with zero gradients, kept): {:.2}x (same bits)",
+                r.level, r.entries, r.speedup
+            ));
+            adam_lanes_out.push(r);
+        }
     }
     let mut ratios = Vec::new();
     for g in rows.iter().filter(|r| r.backend == "wgpu") {
@@ -528,6 +580,7 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
         "launch_overhead": launch,
         "cpu_hash_grid_lanes_over_scalar": lanes,
         "cpu_activation_avx512_over_avx2": act_lanes,
+        "cpu_adam_step_over_baseline": adam_lanes_out,
     });
     crate::util::atomic_write(&args.out, serde_json::to_string_pretty(&report)?.as_bytes())?;
     ctx.say(format!("wrote {}", args.out.display()));

@@ -14,6 +14,7 @@
 //! `[out][in]`, then the gain `g` `[out]`, `W_i = g_i·v_i/‖v_i‖` per output row), then `b` `[out]`.
 //! [`Mlp::layers`] gives every offset.
 
+use crate::nn::simd::SimdLevel;
 use std::f64::consts::PI;
 use std::fmt::Debug;
 use std::ops::{Add, AddAssign, Div, Mul, Neg, Sub};
@@ -308,44 +309,6 @@ fn softplus_derivative<T: Real>(z: T, beta: T) -> T {
         T::zero()
     } else {
         s
-    }
-}
-
-/// How wide the cpu backend's activation loops run: the same loops built for baseline x86-64,
-/// for AVX2 + FMA (8 f32 lanes) or for AVX-512 (16 lanes, and 32 vector registers, so the
-/// polynomials' constants stay in registers). Ordered from narrowest to widest. The loops do
-/// the same operations in the same order at every level (the fused multiply-adds are explicit
-/// `mul_add`s), so every level gives the same bits; only the speed differs.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum SimdLevel {
-    Scalar,
-    Avx2,
-    Avx512,
-}
-
-impl SimdLevel {
-    pub const ALL: [SimdLevel; 3] = [SimdLevel::Scalar, SimdLevel::Avx2, SimdLevel::Avx512];
-
-    /// The widest level this CPU runs (detected once).
-    pub fn detected() -> SimdLevel {
-        #[cfg(target_arch = "x86_64")]
-        {
-            static LEVEL: std::sync::OnceLock<SimdLevel> = std::sync::OnceLock::new();
-            *LEVEL.get_or_init(|| {
-                let avx2 = std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma");
-                let avx512 = std::is_x86_feature_detected!("avx512f")
-                    && std::is_x86_feature_detected!("avx512vl")
-                    && std::is_x86_feature_detected!("avx512dq");
-                match (avx2, avx512) {
-                    (true, true) => SimdLevel::Avx512,
-                    (true, false) => SimdLevel::Avx2,
-                    _ => SimdLevel::Scalar,
-                }
-            })
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        SimdLevel::Scalar
     }
 }
 

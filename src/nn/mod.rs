@@ -7,3 +7,4 @@ pub mod params;
 pub mod bench;
 pub mod field;
 pub mod mlp;
+pub mod simd;
