@@ -248,11 +248,17 @@ fn sg_product_shape<S: Scalar>(a_axis: V3<S>, a_lambda: S, b_axis: V3<S>, b_lamb
 
 /// `1 − e^{−x}` for x ≥ 0, accurate for small x.
 fn one_minus_exp_neg<S: Scalar>(x: S) -> S {
+    one_minus_exp_neg_from(x, || (-x).exp())
+}
+
+/// [`one_minus_exp_neg`] with `e^{−x}` from `exp_neg` (asked only where the series does not hold),
+/// for a caller that needs `e^{−x}` itself too.
+fn one_minus_exp_neg_from<S: Scalar>(x: S, exp_neg: impl FnOnce() -> S) -> S {
     if x.val() < 1e-4 {
         // x − x²/2 + x³/6
         x * (S::c(1.0) - x * (S::c(0.5) - x * S::c(1.0 / 6.0)))
     } else {
-        S::c(1.0) - (-x).exp()
+        S::c(1.0) - exp_neg()
     }
 }
 
@@ -283,9 +289,9 @@ pub fn hemisphere_int<S: Scalar>(lambda: S, cos_beta: S) -> S {
         (b - inv_a) / ((S::c(1.0) - inv_a) * (b + S::c(1.0)))
     };
     // A_b = 2π/λ (e^{−λ} − e^{−2λ}) = 2π/λ e^{−λ}(1 − e^{−λ}); A_u = 2π/λ (1 − e^{−λ}).
-    // e^{−λ} once for both (as `one_minus_exp_neg`: its series below 1e-4).
+    // e^{−λ} once for both.
     let e_l = (-l).exp();
-    let om = if l.val() < 1e-4 { one_minus_exp_neg(l) } else { S::c(1.0) - e_l };
+    let om = one_minus_exp_neg_from(l, || e_l);
     let a_u = S::c(2.0 * PI) * om * inv;
     let a_b = a_u * e_l;
     a_b * (S::c(1.0) - s) + a_u * s
