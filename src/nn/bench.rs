@@ -525,6 +525,15 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
             adam_lanes_out.push(r);
         }
     }
+    // Stage 2's shading (not a network, but the other half of its host step): the per-lobe SG
+    // factors for 32 lobes, packs of lanes against the scalar duals.
+    let sg_lanes = crate::sg::lanes::bench_lobe_factors(32, 256, args.iters * 3)?;
+    if let Some(r) = &sg_lanes {
+        ctx.say(format!(
+            "cpu SG lobe factors (stage 2's shading, duals in 5 tangents), {:?} packs / scalar, {} lobes: {:.2}x, {:.0} ns per lobe (same bits)",
+            r.level, r.lobes, r.speedup, r.ns_per_lobe
+        ));
+    }
     let mut ratios = Vec::new();
     for g in rows.iter().filter(|r| r.backend == "wgpu") {
         if let Some(c) = rows
@@ -581,6 +590,7 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
         "cpu_hash_grid_lanes_over_scalar": lanes,
         "cpu_activation_avx512_over_avx2": act_lanes,
         "cpu_adam_step_over_baseline": adam_lanes_out,
+        "cpu_sg_lobe_factors_over_scalar": sg_lanes,
     });
     crate::util::atomic_write(&args.out, serde_json::to_string_pretty(&report)?.as_bytes())?;
     ctx.say(format!("wrote {}", args.out.display()));

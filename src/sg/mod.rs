@@ -5,5 +5,6 @@ pub mod bench_brdf;
 pub mod cli;
 pub mod env;
 pub mod fit;
+pub mod lanes;
 pub mod shade;
 pub mod shade_gpu;

@@ -50,7 +50,9 @@ pub const COS_MU: f64 = 32.7080;
 pub const COS_LAMBDA: f64 = 0.0315;
 pub const COS_ALPHA: f64 = 31.7003;
 
-/// The scalar operations the shading code needs: f32, f64 and dual numbers.
+/// The scalar operations the shading code needs: f32, f64, dual numbers, and packs of
+/// [`crate::sg::lanes::LANES`] of either (whose comparisons are per lane, so the code takes no
+/// branch on a value: both sides of a choice are formed and one is selected).
 pub trait Scalar:
     Copy
     + Add<Output = Self>
@@ -60,42 +62,156 @@ pub trait Scalar:
     + Neg<Output = Self>
 {
     fn c(v: f64) -> Self;
-    fn val(self) -> f64;
     fn exp(self) -> Self;
     fn sqrt(self) -> Self;
+    /// `a` where `self < c`, else `b` (NaN: `b`); a dual takes the derivatives of its choice.
+    fn select_lt(self, c: f64, a: Self, b: Self) -> Self;
+    /// `a` where `self <= c`, else `b` (NaN: `b`).
+    fn select_le(self, c: f64, a: Self, b: Self) -> Self;
+    /// `a` where `self >= c`, else `b` (NaN: `b`).
+    fn select_ge(self, c: f64, a: Self, b: Self) -> Self;
+    /// `self + c` for a constant `c` (a dual skips the constant's zero tangents: the shading
+    /// is mostly products and sums with constants, and its duals' work halves).
+    #[inline(always)]
+    fn add_c(self, c: f64) -> Self {
+        self + Self::c(c)
+    }
+    /// `self·c` for a constant `c`.
+    #[inline(always)]
+    fn mul_c(self, c: f64) -> Self {
+        self * Self::c(c)
+    }
+    /// `c − self` for a constant `c`.
+    #[inline(always)]
+    fn c_sub(self, c: f64) -> Self {
+        Self::c(c) - self
+    }
+    /// `1/self`.
+    #[inline(always)]
+    fn recip(self) -> Self {
+        Self::c(1.0) / self
+    }
     /// 2^self.
+    #[inline(always)]
     fn exp2(self) -> Self {
-        (self * Self::c(std::f64::consts::LN_2)).exp()
+        self.mul_c(std::f64::consts::LN_2).exp()
     }
-    /// max(self, lo) with the derivative of the branch taken (0 below).
+    /// max(self, lo) with the derivative of the branch taken (0 below; NaN: `lo`).
+    #[inline(always)]
     fn max_c(self, lo: f64) -> Self {
-        if self.val() >= lo {
-            self
-        } else {
-            Self::c(lo)
-        }
+        self.select_ge(lo, self, Self::c(lo))
     }
+    /// min(self, hi) with the derivative of the branch taken (NaN: `hi`).
+    #[inline(always)]
     fn min_c(self, hi: f64) -> Self {
-        if self.val() <= hi {
-            self
-        } else {
-            Self::c(hi)
-        }
+        self.select_le(hi, self, Self::c(hi))
     }
 }
 
+/// A [`Scalar`] that is one number (not a pack of lanes): its value.
+pub trait Value: Scalar {
+    fn val(self) -> f64;
+}
+
+/// `e^x` in f64 without a libm call, so that it vectorises (the shading's packs of lanes,
+/// [`crate::sg::lanes`]) and every form of the shading (f64, duals, lanes, at any SIMD level)
+/// gets the same bits from it. Cody–Waite reduction by ln 2 (the round to nearest by the
+/// 1.5·2⁵² shift, no `floor`), then the Taylor series to r¹³ on |r| ≤ ln 2/2 (the next term is
+/// below 5e-18 relative); separate products and sums (no fused multiply-add, whose software
+/// fallback is a call on CPUs without FMA), within 2 ulp of libm's `exp` (tested). Below −708
+/// it returns 0 (libm: a subnormal number, down to 0 at −745), above 709 +∞ (libm: finite up
+/// to 709.78); NaN stays NaN.
+#[inline(always)]
+pub fn exp_f64(x: f64) -> f64 {
+    // max/min (not clamp) map NaN to a bound, so the bit steps below never see NaN.
+    let xc = x.max(EXP_LO).min(EXP_HI);
+    let t = xc * std::f64::consts::LOG2_E + EXP_SHIFT;
+    let n = t - EXP_SHIFT;
+    let r = (xc - n * EXP_LN2_HI) - n * EXP_LN2_LO;
+    let mut p = EXP_TAYLOR[0];
+    for c in &EXP_TAYLOR[1..] {
+        p = p * r + c;
+    }
+    let e = 1.0 + (r + r * r * p);
+    // t's low mantissa bits hold n (two's complement): 2^n from its bits.
+    let scale = f64::from_bits(t.to_bits().wrapping_sub(EXP_SHIFT.to_bits()).wrapping_add(1023) << 52);
+    let y = e * scale;
+    if x.is_nan() {
+        x
+    } else if x < EXP_LO {
+        0.0
+    } else if x > EXP_HI {
+        f64::INFINITY
+    } else {
+        y
+    }
+}
+
+/// [`exp_f64`]'s range: 0 below, +∞ above.
+pub(crate) const EXP_LO: f64 = -708.0;
+pub(crate) const EXP_HI: f64 = 709.0;
+/// 1.5·2⁵²: adding it rounds to an integer held in the low mantissa bits.
+pub(crate) const EXP_SHIFT: f64 = 6_755_399_441_055_744.0;
+/// ln 2 split: the high part has few mantissa bits, so `n·EXP_LN2_HI` is exact for |n| < 2¹¹.
+pub(crate) const EXP_LN2_HI: f64 = 6.931_457_519_531_25e-1;
+pub(crate) const EXP_LN2_LO: f64 = 1.428_606_820_309_417_232_12e-6;
+/// 1/13!, 1/12!, …, 1/2!: the series after `1 + r`, highest first (Horner).
+pub(crate) const EXP_TAYLOR: [f64; 12] = [
+    1.0 / 6_227_020_800.0,
+    1.0 / 479_001_600.0,
+    1.0 / 39_916_800.0,
+    1.0 / 3_628_800.0,
+    1.0 / 362_880.0,
+    1.0 / 40_320.0,
+    1.0 / 5_040.0,
+    1.0 / 720.0,
+    1.0 / 120.0,
+    1.0 / 24.0,
+    1.0 / 6.0,
+    0.5,
+];
+
 impl Scalar for f64 {
+    #[inline(always)]
     fn c(v: f64) -> Self {
         v
     }
-    fn val(self) -> f64 {
-        self
-    }
+    #[inline(always)]
     fn exp(self) -> Self {
-        f64::exp(self)
+        exp_f64(self)
     }
+    #[inline(always)]
     fn sqrt(self) -> Self {
         f64::sqrt(self)
+    }
+    #[inline(always)]
+    fn select_lt(self, c: f64, a: Self, b: Self) -> Self {
+        if self < c {
+            a
+        } else {
+            b
+        }
+    }
+    #[inline(always)]
+    fn select_le(self, c: f64, a: Self, b: Self) -> Self {
+        if self <= c {
+            a
+        } else {
+            b
+        }
+    }
+    #[inline(always)]
+    fn select_ge(self, c: f64, a: Self, b: Self) -> Self {
+        if self >= c {
+            a
+        } else {
+            b
+        }
+    }
+}
+impl Value for f64 {
+    fn val(self) -> f64 {
+        self
     }
 }
 
@@ -103,14 +219,37 @@ impl Scalar for f32 {
     fn c(v: f64) -> Self {
         v as f32
     }
-    fn val(self) -> f64 {
-        self as f64
-    }
     fn exp(self) -> Self {
         f32::exp(self)
     }
     fn sqrt(self) -> Self {
         f32::sqrt(self)
+    }
+    fn select_lt(self, c: f64, a: Self, b: Self) -> Self {
+        if (self as f64) < c {
+            a
+        } else {
+            b
+        }
+    }
+    fn select_le(self, c: f64, a: Self, b: Self) -> Self {
+        if self as f64 <= c {
+            a
+        } else {
+            b
+        }
+    }
+    fn select_ge(self, c: f64, a: Self, b: Self) -> Self {
+        if self as f64 >= c {
+            a
+        } else {
+            b
+        }
+    }
+}
+impl Value for f32 {
+    fn val(self) -> f64 {
+        self as f64
     }
 }
 
@@ -128,6 +267,7 @@ impl<const N: usize> Dual<N> {
         d[i] = 1.0;
         Self { v, d }
     }
+    #[inline(always)]
     fn map(self, v: f64, dv: f64) -> Self {
         Self { v, d: self.d.map(|x| x * dv) }
     }
@@ -135,6 +275,7 @@ impl<const N: usize> Dual<N> {
 
 impl<const N: usize> Add for Dual<N> {
     type Output = Self;
+    #[inline(always)]
     fn add(self, o: Self) -> Self {
         let mut d = self.d;
         for (a, b) in d.iter_mut().zip(o.d) {
@@ -145,6 +286,7 @@ impl<const N: usize> Add for Dual<N> {
 }
 impl<const N: usize> Sub for Dual<N> {
     type Output = Self;
+    #[inline(always)]
     fn sub(self, o: Self) -> Self {
         let mut d = self.d;
         for (a, b) in d.iter_mut().zip(o.d) {
@@ -155,6 +297,7 @@ impl<const N: usize> Sub for Dual<N> {
 }
 impl<const N: usize> Mul for Dual<N> {
     type Output = Self;
+    #[inline(always)]
     fn mul(self, o: Self) -> Self {
         let mut d = [0.0; N];
         for i in 0..N {
@@ -165,6 +308,7 @@ impl<const N: usize> Mul for Dual<N> {
 }
 impl<const N: usize> Div for Dual<N> {
     type Output = Self;
+    #[inline(always)]
     fn div(self, o: Self) -> Self {
         let inv = 1.0 / o.v;
         let q = self.v * inv;
@@ -177,42 +321,93 @@ impl<const N: usize> Div for Dual<N> {
 }
 impl<const N: usize> Neg for Dual<N> {
     type Output = Self;
+    #[inline(always)]
     fn neg(self) -> Self {
         Self { v: -self.v, d: self.d.map(|x| -x) }
     }
 }
 impl<const N: usize> Scalar for Dual<N> {
+    #[inline(always)]
     fn c(v: f64) -> Self {
         Self { v, d: [0.0; N] }
     }
-    fn val(self) -> f64 {
-        self.v
-    }
+    #[inline(always)]
     fn exp(self) -> Self {
-        let e = self.v.exp();
+        let e = exp_f64(self.v);
         self.map(e, e)
     }
+    #[inline(always)]
     fn sqrt(self) -> Self {
         let s = self.v.sqrt();
         self.map(s, if s > 0.0 { 0.5 / s } else { 0.0 })
+    }
+    #[inline(always)]
+    fn select_lt(self, c: f64, a: Self, b: Self) -> Self {
+        if self.v < c {
+            a
+        } else {
+            b
+        }
+    }
+    #[inline(always)]
+    fn select_le(self, c: f64, a: Self, b: Self) -> Self {
+        if self.v <= c {
+            a
+        } else {
+            b
+        }
+    }
+    #[inline(always)]
+    fn select_ge(self, c: f64, a: Self, b: Self) -> Self {
+        if self.v >= c {
+            a
+        } else {
+            b
+        }
+    }
+    #[inline(always)]
+    fn add_c(self, c: f64) -> Self {
+        Self { v: self.v + c, d: self.d }
+    }
+    #[inline(always)]
+    fn mul_c(self, c: f64) -> Self {
+        self.map(self.v * c, c)
+    }
+    #[inline(always)]
+    fn c_sub(self, c: f64) -> Self {
+        Self { v: c - self.v, d: self.d.map(|x| -x) }
+    }
+    #[inline(always)]
+    fn recip(self) -> Self {
+        let inv = 1.0 / self.v;
+        Self { v: inv, d: self.d.map(|x| -(inv * x) * inv) }
+    }
+}
+impl<const N: usize> Value for Dual<N> {
+    fn val(self) -> f64 {
+        self.v
     }
 }
 
 type V3<S> = [S; 3];
 
+#[inline(always)]
 fn dot<S: Scalar>(a: V3<S>, b: V3<S>) -> S {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
+#[inline(always)]
 fn scale<S: Scalar>(a: V3<S>, s: S) -> V3<S> {
     [a[0] * s, a[1] * s, a[2] * s]
 }
+#[inline(always)]
 fn add<S: Scalar>(a: V3<S>, b: V3<S>) -> V3<S> {
     [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
 }
 /// `a / |a|` (floored length: a zero vector stays finite).
+#[inline(always)]
 pub fn normalize<S: Scalar>(a: V3<S>) -> V3<S> {
     let l = dot(a, a).sqrt().max_c(1e-12);
-    scale(a, S::c(1.0) / l)
+    scale(a, l.recip())
 }
 
 /// An SG with an RGB amplitude (axis assumed unit).
@@ -238,28 +433,26 @@ pub fn sg_product<S: Scalar>(a: &Sg<S>, b: &Sg<S>) -> Sg<S> {
 
 /// [`sg_product`] without amplitudes: the product's axis and sharpness, and the factor `e` its
 /// amplitude carries (`μ' = μ1·μ2·e`).
+#[inline(always)]
 fn sg_product_shape<S: Scalar>(a_axis: V3<S>, a_lambda: S, b_axis: V3<S>, b_lambda: S) -> (V3<S>, S, S) {
     let u = add(scale(a_axis, a_lambda), scale(b_axis, b_lambda));
     let lam = dot(u, u).sqrt().max_c(1e-12);
-    let axis = scale(u, S::c(1.0) / lam);
-    let expo = S::c(2.0) * a_lambda * b_lambda * (dot(a_axis, b_axis) - S::c(1.0)) / (lam + a_lambda + b_lambda);
+    let axis = scale(u, lam.recip());
+    let expo = a_lambda.mul_c(2.0) * b_lambda * dot(a_axis, b_axis).add_c(-1.0) / (lam + a_lambda + b_lambda);
     (axis, lam, expo.exp())
 }
 
 /// `1 − e^{−x}` for x ≥ 0, accurate for small x.
+#[inline(always)]
 fn one_minus_exp_neg<S: Scalar>(x: S) -> S {
-    one_minus_exp_neg_from(x, || (-x).exp())
+    one_minus_exp_neg_from(x, (-x).exp())
 }
 
-/// [`one_minus_exp_neg`] with `e^{−x}` from `exp_neg` (asked only where the series does not hold),
-/// for a caller that needs `e^{−x}` itself too.
-fn one_minus_exp_neg_from<S: Scalar>(x: S, exp_neg: impl FnOnce() -> S) -> S {
-    if x.val() < 1e-4 {
-        // x − x²/2 + x³/6
-        x * (S::c(1.0) - x * (S::c(0.5) - x * S::c(1.0 / 6.0)))
-    } else {
-        S::c(1.0) - exp_neg()
-    }
+/// [`one_minus_exp_neg`] with `e^{−x}` given, for a caller that needs `e^{−x}` itself too.
+#[inline(always)]
+fn one_minus_exp_neg_from<S: Scalar>(x: S, exp_neg: S) -> S {
+    // Below 1e-4: x − x²/2 + x³/6.
+    x.select_lt(1e-4, x * (x * x.mul_c(1.0 / 6.0).c_sub(0.5)).c_sub(1.0), exp_neg.c_sub(1.0))
 }
 
 /// Integral of `G(ω; ξ, λ, 1)` over the whole sphere: `2π/λ·(1 − e^{−2λ})` (→ 4π as λ → 0).
@@ -276,34 +469,35 @@ pub fn sg_inner<S: Scalar>(a: &Sg<S>, b: &Sg<S>) -> V3<S> {
 
 /// Integral of `G(ω; ξ, λ, 1)` over the hemisphere around `n`, with `cos_beta = ξ·n`
 /// (PhySG's `hemisphere_int`, the Meder & Brüderlin fit; exact at cos β = ±1 and λ → ∞).
+#[inline(always)]
 pub fn hemisphere_int<S: Scalar>(lambda: S, cos_beta: S) -> S {
-    let l = lambda + S::c(TINY);
-    let inv = S::c(1.0) / l;
-    let t = l.sqrt() * (S::c(1.6988) + S::c(10.8438) * inv) / (S::c(1.0) + S::c(6.2201) * inv + S::c(10.2415) * inv * inv);
+    let l = lambda.add_c(TINY);
+    let inv = l.recip();
+    let t = l.sqrt() * inv.mul_c(10.8438).add_c(1.6988) / (inv.mul_c(6.2201).add_c(1.0) + inv.mul_c(10.2415) * inv);
     let inv_a = (-t).exp();
-    let s = if cos_beta.val() >= 0.0 {
-        let inv_b = (-t * cos_beta).exp();
-        (S::c(1.0) - inv_a * inv_b) / (S::c(1.0) - inv_a + inv_b - inv_a * inv_b)
-    } else {
-        let b = (t * cos_beta).exp();
-        (b - inv_a) / ((S::c(1.0) - inv_a) * (b + S::c(1.0)))
-    };
+    // e^{−t|cos β|}: e^{−t cos β} on the upper side, e^{t cos β} on the lower; both formed,
+    // one kept (no branch on the value, so that a pack of lanes takes the same path).
+    let q = (-(t * cos_beta.select_ge(0.0, cos_beta, -cos_beta))).exp();
+    let upper = (inv_a * q).c_sub(1.0) / (inv_a.c_sub(1.0) + q - inv_a * q);
+    let lower = (q - inv_a) / (inv_a.c_sub(1.0) * q.add_c(1.0));
+    let s = cos_beta.select_ge(0.0, upper, lower);
     // A_b = 2π/λ (e^{−λ} − e^{−2λ}) = 2π/λ e^{−λ}(1 − e^{−λ}); A_u = 2π/λ (1 − e^{−λ}).
     // e^{−λ} once for both.
     let e_l = (-l).exp();
-    let om = one_minus_exp_neg_from(l, || e_l);
-    let a_u = S::c(2.0 * PI) * om * inv;
+    let om = one_minus_exp_neg_from(l, e_l);
+    let a_u = om.mul_c(2.0 * PI) * inv;
     let a_b = a_u * e_l;
-    a_b * (S::c(1.0) - s) + a_u * s
+    a_b * s.c_sub(1.0) + a_u * s
 }
 
 /// `∫_{H(n)} G(ω; ξ, λ, 1)·cos⁺ dω` with the cosine as SG minus constant; `n` unit. An SG's
 /// integral is its amplitude times this.
+#[inline(always)]
 fn cosine_hemisphere_unit<S: Scalar>(axis: V3<S>, lambda: S, n: V3<S>) -> S {
     let (p_axis, p_lambda, e) = sg_product_shape(n, S::c(COS_LAMBDA), axis, lambda);
     let h1 = hemisphere_int(p_lambda, dot(p_axis, n));
     let h2 = hemisphere_int(lambda, dot(axis, n));
-    S::c(COS_MU) * e * h1 - S::c(COS_ALPHA) * h2
+    e.mul_c(COS_MU) * h1 - h2.mul_c(COS_ALPHA)
 }
 
 /// Per-point shading inputs.
@@ -376,7 +570,7 @@ pub const CALIBRATED_ALPHA_SCALE: f64 = 1.35;
 pub fn env_brdf<S: Scalar>(r: S, nv: S) -> (S, S) {
     let (x, y, z, w) = (S::c(1.0) - r, S::c(0.0425) - S::c(0.0275) * r, S::c(1.04) - S::c(0.572) * r, S::c(0.022) * r - S::c(0.04));
     let grazing = (S::c(-9.28) * nv).exp2();
-    let m = if (x * x).val() < grazing.val() { x * x } else { grazing };
+    let m = (x * x - grazing).select_lt(0.0, x * x, grazing);
     let a004 = m * x + y;
     (S::c(-1.04) * a004 + z, S::c(1.04) * a004 + w)
 }
@@ -439,8 +633,17 @@ impl<S: Scalar> GgxEnergy<S> {
         (f0 * self.a + self.b).max_c(0.0) * (S::c(1.0) + f_ms * (S::c(1.0) - self.e) / self.e)
     }
 
+    /// The same terms in another scalar type.
+    #[inline(always)]
+    pub fn map<T: Scalar>(&self, f: impl Fn(S) -> T) -> GgxEnergy<T> {
+        GgxEnergy { a: f(self.a), b: f(self.b), e: f(self.e), e_avg: f(self.e_avg) }
+    }
+
     /// `d energy / d f0` at `f0`, in f64.
-    pub fn slope(&self, f0: f64) -> f64 {
+    pub fn slope(&self, f0: f64) -> f64
+    where
+        S: Value,
+    {
         let c = |x: S| Dual::<1> { v: x.val(), d: [0.0] };
         GgxEnergy { a: c(self.a), b: c(self.b), e: c(self.e), e_avg: c(self.e_avg) }.at(Dual::var(f0, 0)).d[0]
     }
@@ -528,6 +731,21 @@ impl<S: Scalar> BrdfSg<S> {
         }
     }
 
+    /// The same BRDF side in another scalar type, each number through `f` (a point's side
+    /// spread over a pack of lanes, [`crate::sg::lanes`]).
+    #[inline(always)]
+    pub fn map<T: Scalar>(&self, f: impl Fn(S) -> T) -> BrdfSg<T> {
+        BrdfSg {
+            n: self.n.map(&f),
+            axis: self.axis.map(&f),
+            lambda: f(self.lambda),
+            amplitude: f(self.amplitude),
+            amplitude_energy: f(self.amplitude_energy),
+            diffuse_weight: f(self.diffuse_weight),
+            ggx: self.ggx.map(|g| g.map(&f)),
+        }
+    }
+
     /// The energy measure `E(f)` of reflectance `f` in which the specular is linear
     /// ([`Self::lobe_factors_f0`]): `f` itself in PhySG's form, [`ggx_energy`] in the calibrated one.
     pub fn energy(&self, f: S) -> S {
@@ -535,7 +753,10 @@ impl<S: Scalar> BrdfSg<S> {
     }
 
     /// `dE/df` at `f` ([`Self::energy`]), in f64 at the point's roughness and view.
-    pub fn energy_slope(&self, f: f64) -> f64 {
+    pub fn energy_slope(&self, f: f64) -> f64
+    where
+        S: Value,
+    {
         self.ggx.map_or(1.0, |g| g.slope(f))
     }
 
@@ -550,6 +771,7 @@ impl<S: Scalar> BrdfSg<S> {
     /// ([`Self::energy`]; in PhySG's form `E(f) = f` and `F_e = ∂F_s/∂F0`, exactly: its Fresnel
     /// term is linear in F0). A metallic mix `m` of the two (Principled BSDF's and glTF's linear
     /// blend) is `F_s + m·(E(albedo) − E(F0))·F_e`.
+#[inline(always)]
     pub fn lobe_factors_f0(&self, axis: V3<S>, lambda: S) -> (S, S, S) {
         let axis = normalize(axis);
         let lambda = lambda.max_c(LAMBDA_MIN);

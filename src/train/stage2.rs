@@ -58,9 +58,11 @@ use crate::nn::encoding::{encoding_backward_cpu, encoding_forward_cpu, EncodingC
 use crate::nn::field::{Encoder, FieldEncoding, PositionEncoder};
 use crate::nn::mlp::{Activation, Init, Mlp, MlpConfig};
 use crate::nn::params::ParamStore;
+use crate::nn::simd::SimdLevel;
 use crate::render::grid::SdfGrid;
 use crate::render::{trace, trace_secondary, Rays, TraceConfig};
 use crate::sg::env::{EnvSgs, SgLobe};
+use crate::sg::lanes;
 use crate::sg::shade::{normalize, sg_eval, BrdfModel, BrdfSg, Dual, Scalar, Sg, F0, LAMBDA_MIN, R_MIN};
 use crate::util::DataError;
 
@@ -1251,11 +1253,11 @@ pub fn shade_f64(model: BrdfModel, albedo: [f64; 3], rough: f64, metal: f64, n: 
     let (ks, kd) = metal_weights(energy_gaps(&brdf, albedo), albedo, metal);
     let mut spec = [0.0; 3];
     let mut diff = [0.0; 3];
-    for l in lobes {
-        let (fs, fe, fd) = brdf.lobe_factors_f0(l.axis, l.lambda);
+    let factors = lanes::lobe_factors(SimdLevel::detected(), &brdf.map(|x| Dual::<0> { v: x, d: [] }), lobes, None);
+    for (l, [fs, fe, fd]) in lobes.iter().zip(factors) {
         for c in 0..3 {
-            spec[c] += l.mu[c] * (fs + ks[c] * fe);
-            diff[c] += l.mu[c] * kd[c] * fd;
+            spec[c] += l.mu[c] * (fs.v + ks[c] * fe.v);
+            diff[c] += l.mu[c] * kd[c] * fd.v;
         }
     }
     (spec, diff)
@@ -1268,8 +1270,9 @@ pub fn shade_f64(model: BrdfModel, albedo: [f64; 3], rough: f64, metal: f64, n: 
 pub struct PointShading {
     pub spec: [f64; 3],
     pub diff: [f64; 3],
-    /// Per lobe `(F_s, F_e, F_d)` ([`BrdfSg::lobe_factors_f0`]).
-    factors: Vec<(Dual<5>, Dual<5>, Dual<5>)>,
+    /// Per lobe `[F_s, F_e, F_d]` ([`BrdfSg::lobe_factors_f0`], [`LANES`](lanes::LANES) lobes
+    /// at a time).
+    factors: Vec<[Dual<5>; 3]>,
     /// The metal weights `ks_c` as duals in R ([`metal_weights`]), `∂ks_c/∂a_c`, and
     /// `E(a_c) − E(F0)` (`∂ks_c/∂m`).
     ks: [Dual<5>; 3],
@@ -1289,15 +1292,14 @@ impl PointShading {
         let (ks, kd) = metal_weights(gaps, albedo, metal);
         let dks_da = albedo.map(|a| metal * brdf.energy_slope(a));
         let energy_gap = gaps.map(|g| g.v);
-        let mut out = Self { spec: [0.0; 3], diff: [0.0; 3], factors: Vec::with_capacity(lobes.len()), ks, dks_da, energy_gap };
-        for l in lobes {
-            let axis = [D::var(l.axis[0], 1), D::var(l.axis[1], 2), D::var(l.axis[2], 3)];
-            let (fs, fe, fd) = brdf.lobe_factors_f0(axis, D::var(l.lambda, 4));
+        // The lobe's axis is tangents 1..4, its sharpness tangent 4.
+        let factors = lanes::lobe_factors(SimdLevel::detected(), &brdf, lobes, Some(1));
+        let mut out = Self { spec: [0.0; 3], diff: [0.0; 3], factors, ks, dks_da, energy_gap };
+        for (l, [fs, fe, fd]) in lobes.iter().zip(&out.factors) {
             for c in 0..3 {
                 out.spec[c] += l.mu[c] * (fs.v + ks[c].v * fe.v);
                 out.diff[c] += l.mu[c] * kd[c] * fd.v;
             }
-            out.factors.push((fs, fe, fd));
         }
         out
     }
@@ -1315,7 +1317,7 @@ impl PointShading {
         // Per channel Σ_l μ_c·F_e: what the metal weights' own derivatives multiply.
         let mut fe_sum = [0.0; 3];
         let mut dl = Vec::with_capacity(lobes.len());
-        for (l, (fs, fe, fd)) in lobes.iter().zip(&self.factors) {
+        for (l, [fs, fe, fd]) in lobes.iter().zip(&self.factors) {
             let (mut cs, mut ce, mut cd) = (0.0, 0.0, 0.0);
             let mut g = [0.0f64; 7];
             for c in 0..3 {
@@ -1354,8 +1356,8 @@ pub fn shade_normal_grad(model: BrdfModel, albedo: [f64; 3], rough: f64, metal: 
     let brdf = BrdfSg::with_model(model, [D::var(n[0], 0), D::var(n[1], 1), D::var(n[2], 2)], v.map(cst), cst(rough));
     let (ks, kd) = metal_weights(energy_gaps(&brdf, albedo), albedo, metal);
     let mut dn = [0.0; 3];
-    for l in lobes {
-        let (fs, fe, fd) = brdf.lobe_factors_f0(l.axis.map(cst), cst(l.lambda));
+    let factors = lanes::lobe_factors(SimdLevel::detected(), &brdf, lobes, None);
+    for (l, [fs, fe, fd]) in lobes.iter().zip(factors) {
         // spec_c = μ_c·(F_s + ks_c·F_e), diff_c = μ_c·kd_c·F_d; ks_c depends on n through n·v.
         for c in 0..3 {
             let s = fs + ks[c] * fe;
