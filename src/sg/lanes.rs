@@ -9,7 +9,7 @@
 //! vectoriser left five of six operations scalar (0.4–1.4× the scalar duals' speed).
 //!
 //! Every operation is the one [`Dual`] does, in the same order, per lane; the comparisons of the
-//! shading are selects ([`Scalar::select_lt`] and its kin) and `exp` is [`exp_f64`]'s steps on
+//! shading are selects ([`Scalar::select_lt`] and its kin) and `exp` is [`exp_f64`](super::shade::exp_f64)'s steps on
 //! every form, so a lane gives exactly the bits of the scalar code on that lobe, at every level
 //! (tested). Only the speed differs.
 
@@ -47,11 +47,11 @@ pub trait Pack: Copy {
     fn is_nan(self) -> Self::Mask;
     /// `a` where `m`, else `b`.
     fn blend(m: Self::Mask, a: Self, b: Self) -> Self;
-    /// `2^n` for `t = n + 1.5·2⁵²` ([`exp_f64`]'s bit step).
+    /// `2^n` for `t = n + 1.5·2⁵²` ([`exp_f64`](super::shade::exp_f64)'s bit step).
     fn pow2_of_shifted(t: Self) -> Self;
 }
 
-/// [`exp_f64`]'s steps on a pack: the same bits per lane.
+/// [`exp_f64`](super::shade::exp_f64)'s steps on a pack: the same bits per lane.
 #[inline(always)]
 fn exp_pack<P: Pack>(x: P) -> P {
     let xc = x.max(P::splat(EXP_LO)).min(P::splat(EXP_HI));
