@@ -771,7 +771,7 @@ impl<S: Scalar> BrdfSg<S> {
     /// ([`Self::energy`]; in PhySG's form `E(f) = f` and `F_e = ∂F_s/∂F0`, exactly: its Fresnel
     /// term is linear in F0). A metallic mix `m` of the two (Principled BSDF's and glTF's linear
     /// blend) is `F_s + m·(E(albedo) − E(F0))·F_e`.
-#[inline(always)]
+    #[inline(always)]
     pub fn lobe_factors_f0(&self, axis: V3<S>, lambda: S) -> (S, S, S) {
         let axis = normalize(axis);
         let lambda = lambda.max_c(LAMBDA_MIN);

@@ -1253,7 +1253,7 @@ pub fn shade_f64(model: BrdfModel, albedo: [f64; 3], rough: f64, metal: f64, n: 
     let (ks, kd) = metal_weights(energy_gaps(&brdf, albedo), albedo, metal);
     let mut spec = [0.0; 3];
     let mut diff = [0.0; 3];
-    let factors = lanes::lobe_factors(SimdLevel::detected(), &brdf.map(|x| Dual::<0> { v: x, d: [] }), lobes, None);
+    let factors = lanes::lobe_factors(SimdLevel::detected(), &brdf.map(Dual::<0>::c), lobes, None);
     for (l, [fs, fe, fd]) in lobes.iter().zip(factors) {
         for c in 0..3 {
             spec[c] += l.mu[c] * (fs.v + ks[c] * fe.v);
