@@ -534,6 +534,14 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
             r.level, r.lobes, r.speedup, r.ns_per_lobe
         ));
     }
+    // Stage 2's secondary rays march on a sampled SDF grid (121³ is its default).
+    let march_lanes = crate::render::grid::bench_march(121, 1 << 14, args.iters * 3)?;
+    if let Some(r) = &march_lanes {
+        ctx.say(format!(
+            "cpu grid march (stage 2's secondary rays, {}³ grid, {:.1} steps a ray), eight-ray lanes / scalar, one thread: {:.2}x, {:.1} vs {:.1} ns a step (same bits)",
+            r.nodes, r.steps_per_ray, r.speedup, r.ns_per_step_lanes, r.ns_per_step_scalar
+        ));
+    }
     let mut ratios = Vec::new();
     for g in rows.iter().filter(|r| r.backend == "wgpu") {
         if let Some(c) = rows
@@ -591,6 +599,7 @@ pub fn run(args: &BenchNnArgs, ctx: &Context) -> anyhow::Result<()> {
         "cpu_activation_avx512_over_avx2": act_lanes,
         "cpu_adam_step_over_baseline": adam_lanes_out,
         "cpu_sg_lobe_factors_over_scalar": sg_lanes,
+        "cpu_grid_march_lanes_over_scalar": march_lanes,
     });
     crate::util::atomic_write(&args.out, serde_json::to_string_pretty(&report)?.as_bytes())?;
     ctx.say(format!("wrote {}", args.out.display()));

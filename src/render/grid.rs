@@ -5,7 +5,10 @@
 
 use rayon::prelude::*;
 
-use super::{DeviceSdf, LowerBound, PointSdf, SdfBatch};
+use super::{march_scalar, DeviceSdf, LowerBound, March, Marched, PointSdf, Rays, SdfBatch};
+
+#[cfg(target_arch = "x86_64")]
+mod lanes;
 use crate::backend::BackendError;
 use crate::mesh::field::Aabb;
 use crate::mesh::grid::GridSpec;
@@ -16,6 +19,9 @@ use crate::mesh::grid::GridSpec;
 pub struct SdfGrid {
     bound: f32,
     spec: GridSpec,
+    /// `1 / spec.spacing`: a lookup multiplies by it (a division in its dependency chain was a
+    /// fifth of a secondary ray's step).
+    inv_spacing: f32,
     values: Vec<f32>,
 }
 
@@ -43,7 +49,8 @@ impl SdfGrid {
             }
             values.extend(v);
         }
-        Ok(Self { bound, spec, values })
+        let inv_spacing = 1.0 / spec.spacing;
+        Ok(Self { bound, spec, inv_spacing, values })
     }
 
     pub fn nodes(&self) -> usize {
@@ -70,25 +77,30 @@ impl SdfGrid {
         self.values.len()
     }
 
-    /// Trilinear interpolation at `p` (clamped into the cube).
+    /// Trilinear interpolation at `p` (clamped into the cube; NaN where `p` has a NaN).
+    /// The eight-ray march (`render::grid::lanes`, x86-64) gives its bits lane by lane: change both together.
     pub fn at(&self, p: [f32; 3]) -> f32 {
         let n = self.nodes();
+        let hi = (n - 1) as f32;
+        let top = n as i32 - 2;
         let mut i = [0usize; 3];
         let mut w = [0.0f32; 3];
         for a in 0..3 {
-            let u = ((p[a] + self.bound) / self.spec.spacing).clamp(0.0, (n - 1) as f32);
-            let i0 = (u as usize).min(n - 2);
-            i[a] = i0;
+            let u = ((p[a] + self.bound) * self.inv_spacing).clamp(0.0, hi);
+            // `as` takes NaN to 0 (the weight stays NaN, so does the value).
+            let i0 = (u as i32).min(top);
+            i[a] = i0 as usize;
             w[a] = u - i0 as f32;
         }
-        let idx = |x: usize, y: usize, z: usize| self.spec.index(x, y, z);
-        let v = &self.values;
+        let (sy, sz) = (n, n * n);
+        let b = (i[2] * n + i[1]) * n + i[0];
+        // One bounds check: the cell's last corner is `b + sz + sy + 1` ≤ n³ − 1.
+        let v = &self.values[b..b + sz + sy + 2];
         let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
-        let (x, y, z) = (i[0], i[1], i[2]);
-        let c00 = lerp(v[idx(x, y, z)], v[idx(x + 1, y, z)], w[0]);
-        let c10 = lerp(v[idx(x, y + 1, z)], v[idx(x + 1, y + 1, z)], w[0]);
-        let c01 = lerp(v[idx(x, y, z + 1)], v[idx(x + 1, y, z + 1)], w[0]);
-        let c11 = lerp(v[idx(x, y + 1, z + 1)], v[idx(x + 1, y + 1, z + 1)], w[0]);
+        let c00 = lerp(v[0], v[1], w[0]);
+        let c10 = lerp(v[sy], v[sy + 1], w[0]);
+        let c01 = lerp(v[sz], v[sz + 1], w[0]);
+        let c11 = lerp(v[sz + sy], v[sz + sy + 1], w[0]);
         lerp(lerp(c00, c10, w[1]), lerp(c01, c11, w[1]), w[2])
     }
 }
@@ -105,6 +117,15 @@ impl SdfBatch for SdfGrid {
 impl PointSdf for SdfGrid {
     fn at(&self, p: [f32; 3]) -> f32 {
         SdfGrid::at(self, p)
+    }
+    fn march(&self, rays: &Rays, first: usize, m: &March, out: &mut [Marched]) {
+        #[cfg(target_arch = "x86_64")]
+        if crate::nn::simd::SimdLevel::detected() >= crate::nn::simd::SimdLevel::Avx2 && lanes::fits(self) && m.steps > 0 {
+            // SAFETY: AVX2 (and FMA, which the function's features name) were detected.
+            unsafe { lanes::march_avx2(self, rays, first, m, out) };
+            return;
+        }
+        march_scalar(self, rays, first, m, out)
     }
 }
 
@@ -210,6 +231,86 @@ impl LowerBound for GridLower<'_> {
     }
 }
 
+/// [`bench_march`]'s figures.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct GridMarchLanes {
+    pub nodes: usize,
+    pub rays: usize,
+    pub steps_per_ray: f64,
+    /// Scalar march time / lanes march time, one thread each.
+    pub speedup: f64,
+    pub ns_per_step_scalar: f64,
+    pub ns_per_step_lanes: f64,
+}
+
+/// Times the secondary march on a grid (`nodes`³ samples of a ball on a floor) of `rays` rays
+/// leaving the ball's and floor's surfaces, [`SdfGrid`]'s lanes against [`march_scalar`], on
+/// one thread, best of `rounds`; the results are checked bit for bit. None where the lanes do
+/// not run (no AVX2).
+pub fn bench_march(nodes: usize, rays: usize, rounds: usize) -> anyhow::Result<Option<GridMarchLanes>> {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use rand::Rng;
+        if crate::nn::simd::SimdLevel::detected() < crate::nn::simd::SimdLevel::Avx2 {
+            return Ok(None);
+        }
+        let field = |p: &[f32]| -> Result<Vec<f32>, BackendError> {
+            Ok(p.chunks_exact(3).map(|q| (q[1] + 0.3).min(((q[0] - 0.2).powi(2) + (q[1] + 0.05).powi(2) + q[2] * q[2]).sqrt() - 0.25)).collect())
+        };
+        let g = SdfGrid::sample(&field, 1.0, nodes)?;
+        if !lanes::fits(&g) {
+            return Ok(None);
+        }
+        let mut rng = crate::util::rng(23);
+        let mut r = Rays::default();
+        for i in 0..rays.max(1) {
+            let (o, n) = if i % 2 == 0 {
+                ([rng.random_range(-0.8f32..0.8), -0.3, rng.random_range(-0.8f32..0.8)], [0.0, 1.0, 0.0])
+            } else {
+                let a: f32 = rng.random_range(0.0..std::f32::consts::PI);
+                let b: f32 = rng.random_range(0.0..std::f32::consts::TAU);
+                let n = [a.sin() * b.cos(), a.cos(), a.sin() * b.sin()];
+                ([0.2 + 0.25 * n[0], -0.05 + 0.25 * n[1], 0.25 * n[2]], n)
+            };
+            // A direction in the upper hemisphere of the normal, as a lobe's rays are.
+            let d: [f32; 3] = std::array::from_fn(|_| rng.random_range(-1.0f32..1.0));
+            let s = if d[0] * n[0] + d[1] * n[1] + d[2] * n[2] < 0.0 { -1.0 } else { 1.0 };
+            let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-3);
+            r.origins.push(o);
+            r.dirs.push(d.map(|c| s * c / l));
+        }
+        let m = March { start_offset: 0.01, steps: 48, threshold: 5e-4, bound: 1.0 };
+        let mut best = [f64::INFINITY; 2];
+        let mut outs = [vec![(false, 0.0f32, 0usize); r.len()], vec![(false, 0.0f32, 0usize); r.len()]];
+        for _ in 0..rounds.max(2) {
+            let t = std::time::Instant::now();
+            march_scalar(&g, &r, 0, &m, &mut outs[0]);
+            best[0] = best[0].min(t.elapsed().as_secs_f64());
+            let t = std::time::Instant::now();
+            g.march(&r, 0, &m, &mut outs[1]);
+            best[1] = best[1].min(t.elapsed().as_secs_f64());
+            if outs[0].iter().zip(&outs[1]).any(|(a, b)| a.0 != b.0 || a.1.to_bits() != b.1.to_bits() || a.2 != b.2) {
+                anyhow::bail!("grid march: the lanes and the scalar march disagree");
+            }
+        }
+        let steps: usize = outs[0].iter().map(|o| o.2).sum();
+        let per = |s: f64| s / steps.max(1) as f64 * 1e9;
+        Ok(Some(GridMarchLanes {
+            nodes,
+            rays: r.len(),
+            steps_per_ray: steps as f64 / r.len() as f64,
+            speedup: best[0] / best[1],
+            ns_per_step_scalar: per(best[0]),
+            ns_per_step_lanes: per(best[1]),
+        }))
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = (nodes, rays, rounds);
+        Ok(None)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -287,6 +388,121 @@ mod tests {
                 assert!(hits > 50 && hits < 2900, "{hits} hits");
             }
         }
+    }
+
+    /// A grid with a NaN node, its field the floor-and-ball of the test above.
+    #[cfg(target_arch = "x86_64")]
+    fn lanes_grid(nodes: usize) -> SdfGrid {
+        let field = |p: &[f32]| -> Result<Vec<f32>, BackendError> {
+            Ok(p.chunks_exact(3).map(|q| (q[1] + 0.3).min(((q[0] - 0.2).powi(2) + (q[1] + 0.05).powi(2) + q[2] * q[2]).sqrt() - 0.2)).collect())
+        };
+        let mut g = SdfGrid::sample(&field, 1.0, nodes).unwrap();
+        let k = g.spec.index(nodes / 2, nodes - 1, nodes / 3);
+        g.values[k] = f32::NAN;
+        g
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    fn has_avx2() -> bool {
+        let ok = crate::nn::simd::SimdLevel::detected() >= crate::nn::simd::SimdLevel::Avx2;
+        if !ok {
+            eprintln!("no AVX2 on this CPU: the eight-lane march is not used here, nothing to check");
+        }
+        ok
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn eight_lanes_look_up_the_scalar_bits() {
+        if !has_avx2() {
+            return;
+        }
+        let mut rng = crate::util::rng(3);
+        use rand::Rng;
+        for nodes in [2, 5, 33, 97] {
+            let g = lanes_grid(nodes);
+            let h = g.spacing();
+            let mut pts: Vec<[f32; 3]> = vec![
+                [0.0, 0.0, 0.0],
+                [-0.0, -1.0, 1.0],
+                [1.0, 1.0, 1.0],
+                [-1.0, -1.0, -1.0],
+                [5.0, -7.0, 0.3],
+                [f32::INFINITY, 0.1, f32::NEG_INFINITY],
+                [f32::NAN, 0.0, 0.0],
+                [0.0, f32::NAN, 0.0],
+                [0.2, 0.3, f32::NAN],
+                [-1.0 + 3.0 * h, -1.0 + h, 1.0 - h],
+                [f32::MAX, f32::MIN, f32::MIN_POSITIVE],
+            ];
+            for _ in 0..2000 {
+                pts.push([rng.random_range(-1.2f32..1.2), rng.random_range(-1.2f32..1.2), rng.random_range(-1.2f32..1.2)]);
+            }
+            for chunk in pts.chunks(8) {
+                let lanes = unsafe { lanes::at_lanes(&g, chunk) };
+                for (p, v) in chunk.iter().zip(lanes) {
+                    let s = g.at(*p);
+                    assert!(s.to_bits() == v.to_bits() || (s.is_nan() && v.is_nan()), "{nodes} nodes at {p:?}: lanes {v} vs scalar {s}");
+                }
+            }
+        }
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn eight_lanes_march_the_scalar_bits() {
+        if !has_avx2() {
+            return;
+        }
+        let mut rng = crate::util::rng(17);
+        use rand::Rng;
+        // Rays from the floor and the ball (hits, leaving, self-hits), rays from outside the
+        // sphere (some missing it), unnormalised and zero directions, origins on the NaN node.
+        let (mut origins, mut dirs) = (Vec::new(), Vec::new());
+        for i in 0..1500 {
+            let o = match i % 4 {
+                0 => [rng.random_range(-0.8f32..0.8), -0.3, rng.random_range(-0.8f32..0.8)],
+                1 => {
+                    let a: f32 = rng.random_range(0.0..std::f32::consts::TAU);
+                    [0.2 + 0.2 * a.cos(), -0.05 + 0.2 * a.sin(), 0.0]
+                }
+                2 => [rng.random_range(-2.0f32..2.0), rng.random_range(-2.0f32..2.0), rng.random_range(-2.0f32..2.0)],
+                _ => [0.0, 1.0 - rng.random_range(0.0f32..0.1), -0.33],
+            };
+            let mut d: [f32; 3] = [rng.random_range(-1.0..1.0), rng.random_range(-0.2..1.0), rng.random_range(-1.0..1.0)];
+            if i % 5 == 0 {
+                let l = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt().max(1e-3);
+                d = d.map(|c| c / l);
+            }
+            if i % 97 == 0 {
+                d = [0.0; 3];
+            }
+            origins.push(o);
+            dirs.push(d);
+        }
+        let rays = crate::render::Rays { origins, dirs };
+        let mut checked = [0usize; 3];
+        for nodes in [2, 9, 65] {
+            let g = lanes_grid(nodes);
+            for (steps, threshold, start_offset) in [(1, 5e-4, 0.01), (2, 5e-4, 0.01), (48, 5e-4, 0.01), (48, 0.0, 0.02), (48, 0.3, 0.01), (10, f32::NAN, 0.01), (48, 5e-4, 3.0)] {
+                let m = March { start_offset, steps, threshold, bound: 1.0 };
+                // Chunks of odd lengths at odd offsets, as `march_each` hands out and shorter.
+                for (first, len) in [(0, rays.len()), (3, 1), (5, 7), (100, 37), (1001, 499)] {
+                    let mut a = vec![(false, 0.0f32, 0usize); len];
+                    let mut b = vec![(true, 1.0f32, 99usize); len];
+                    march_scalar(&g, &rays, first, &m, &mut a);
+                    unsafe { lanes::march_avx2(&g, &rays, first, &m, &mut b) };
+                    for (j, (x, y)) in a.iter().zip(&b).enumerate() {
+                        assert!(x.0 == y.0 && x.1.to_bits() == y.1.to_bits() && x.2 == y.2, "{nodes} nodes, {m:?}, ray {}: scalar {x:?} vs lanes {y:?}", first + j);
+                        checked[0] += x.0 as usize;
+                        checked[1] += (!x.0 && x.2 == steps) as usize;
+                        checked[2] += (x.2 == 0) as usize;
+                    }
+                }
+            }
+        }
+        // Every outcome was met: hits, rays out of steps, rays missing the sphere.
+        assert!(checked.iter().all(|&c| c > 20), "{checked:?}");
     }
 
     /// A ball with a small one beside it (under three cells across at 65 nodes): camera rays and
