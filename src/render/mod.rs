@@ -243,8 +243,8 @@ const BOUND_STEPS: usize = 128;
 /// A field cheap enough to evaluate point by point (see [`SdfBatch::pointwise`]).
 pub trait PointSdf: Sync {
     fn at(&self, p: [f32; 3]) -> f32;
-    /// March rays `first..first + out.len()` of `rays` as [`trace_secondary`] does, one result
-    /// per ray into `out`. The default is [`march_scalar`]; an override gives its results bit
+    /// March rays `first..first + out.len()` of `rays` (a range inside it: panics otherwise)
+    /// as [`trace_secondary`] does, one result per ray into `out`. The default is [`march_scalar`]; an override gives its results bit
     /// for bit ([`SdfGrid`](grid::SdfGrid) marches eight rays in SIMD lanes).
     fn march(&self, rays: &Rays, first: usize, m: &March, out: &mut [Marched]) {
         march_scalar(self, rays, first, m, out)
