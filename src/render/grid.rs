@@ -6,12 +6,12 @@
 use rayon::prelude::*;
 
 use super::{march_scalar, DeviceSdf, LowerBound, March, Marched, PointSdf, Rays, SdfBatch};
-
-#[cfg(target_arch = "x86_64")]
-mod lanes;
 use crate::backend::BackendError;
 use crate::mesh::field::Aabb;
 use crate::mesh::grid::GridSpec;
+
+#[cfg(target_arch = "x86_64")]
+mod lanes;
 
 /// SDF values at `nodes³` nodes spanning `[-bound, bound]³` (the mesher's [`GridSpec`] layout,
 /// x fastest).
@@ -231,6 +231,12 @@ impl LowerBound for GridLower<'_> {
     }
 }
 
+/// A floor at y = −0.3 and a ball of `radius` over it at (0.2, −0.05, 0): what [`bench_march`]
+/// and the tests march secondary rays through (hits, rays leaving, self-hits).
+fn floor_and_ball(q: &[f32], radius: f32) -> f32 {
+    (q[1] + 0.3).min(((q[0] - 0.2).powi(2) + (q[1] + 0.05).powi(2) + q[2] * q[2]).sqrt() - radius)
+}
+
 /// [`bench_march`]'s figures.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct GridMarchLanes {
@@ -254,9 +260,7 @@ pub fn bench_march(nodes: usize, rays: usize, rounds: usize) -> anyhow::Result<O
         if crate::nn::simd::SimdLevel::detected() < crate::nn::simd::SimdLevel::Avx2 {
             return Ok(None);
         }
-        let field = |p: &[f32]| -> Result<Vec<f32>, BackendError> {
-            Ok(p.chunks_exact(3).map(|q| (q[1] + 0.3).min(((q[0] - 0.2).powi(2) + (q[1] + 0.05).powi(2) + q[2] * q[2]).sqrt() - 0.25)).collect())
-        };
+        let field = |p: &[f32]| -> Result<Vec<f32>, BackendError> { Ok(p.chunks_exact(3).map(|q| floor_and_ball(q, 0.25)).collect()) };
         let g = SdfGrid::sample(&field, 1.0, nodes)?;
         if !lanes::fits(&g) {
             return Ok(None);
@@ -353,7 +357,7 @@ mod tests {
                     if (q[0] - 0.6).abs() < 0.1 && (q[1] - 0.4).abs() < 0.1 && q[2].abs() < 0.1 {
                         return f32::NAN;
                     }
-                    (q[1] + 0.3).min(((q[0] - 0.2).powi(2) + (q[1] + 0.05).powi(2) + q[2] * q[2]).sqrt() - 0.2)
+                    floor_and_ball(q, 0.2)
                 })
                 .collect())
         };
@@ -393,9 +397,7 @@ mod tests {
     /// A grid with a NaN node, its field the floor-and-ball of the test above.
     #[cfg(target_arch = "x86_64")]
     fn lanes_grid(nodes: usize) -> SdfGrid {
-        let field = |p: &[f32]| -> Result<Vec<f32>, BackendError> {
-            Ok(p.chunks_exact(3).map(|q| (q[1] + 0.3).min(((q[0] - 0.2).powi(2) + (q[1] + 0.05).powi(2) + q[2] * q[2]).sqrt() - 0.2)).collect())
-        };
+        let field = |p: &[f32]| -> Result<Vec<f32>, BackendError> { Ok(p.chunks_exact(3).map(|q| floor_and_ball(q, 0.2)).collect()) };
         let mut g = SdfGrid::sample(&field, 1.0, nodes).unwrap();
         let k = g.spec.index(nodes / 2, nodes - 1, nodes / 3);
         g.values[k] = f32::NAN;

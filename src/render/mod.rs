@@ -52,6 +52,8 @@ pub mod device;
 pub mod grid;
 pub mod volume;
 
+use std::ops::ControlFlow;
+
 use rayon::prelude::*;
 
 use crate::backend::BackendError;
@@ -263,29 +265,37 @@ pub struct March {
 /// One ray's march: `(hit, t, steps taken)`; `t` is +∞ where it did not hit.
 pub type Marched = (bool, f32, usize);
 
-/// [`PointSdf::march`]'s reference: each ray to its end on its own, `secondary_step` by step.
+/// [`PointSdf::march`]'s reference: each ray to its end on its own, [`march_step`] by step.
 pub fn march_scalar<F: PointSdf + ?Sized>(f: &F, rays: &Rays, first: usize, m: &March, out: &mut [Marched]) {
     for (j, o) in out.iter_mut().enumerate() {
         let i = first + j;
+        // A ray that misses the sphere, or a march of no steps, takes none.
         *o = (false, f32::INFINITY, 0);
         let Some((_, t1)) = sphere_interval(rays.origins[i], rays.dirs[i], m.bound) else {
             continue;
         };
         let mut t = m.start_offset;
-        *o = (false, f32::INFINITY, m.steps);
         for step in 0..m.steps {
-            match secondary_step(step, t, t1, f.at(rays.at(i, t)), m.threshold) {
-                SecondaryStep::Hit => {
-                    *o = (true, t, step + 1);
+            match march_step(step, t, t1, f.at(rays.at(i, t)), m) {
+                ControlFlow::Break(r) => {
+                    *o = r;
                     break;
                 }
-                SecondaryStep::Open => {
-                    *o = (false, f32::INFINITY, step + 1);
-                    break;
-                }
-                SecondaryStep::Next(tn) => t = tn,
+                ControlFlow::Continue(tn) => t = tn,
             }
         }
+    }
+}
+
+/// Step `step` of a march (0-based) at `t`, leaving at `t1`, with the field's value `fv` there
+/// ([`secondary_step`]): the ray's result where it has finished (its last step included), or
+/// the `t` it goes on from.
+pub(crate) fn march_step(step: usize, t: f32, t1: f32, fv: f32, m: &March) -> ControlFlow<Marched, f32> {
+    match secondary_step(step, t, t1, fv, m.threshold) {
+        SecondaryStep::Hit => ControlFlow::Break((true, t, step + 1)),
+        SecondaryStep::Open => ControlFlow::Break((false, f32::INFINITY, step + 1)),
+        SecondaryStep::Next(tn) if step + 1 < m.steps => ControlFlow::Continue(tn),
+        SecondaryStep::Next(_) => ControlFlow::Break((false, f32::INFINITY, m.steps)),
     }
 }
 
@@ -724,7 +734,7 @@ pub fn trace_secondary(
 }
 
 /// What a secondary ray does after its field value `fv` at `t` (step `step`, leaving at `t1`).
-pub(crate) enum SecondaryStep {
+enum SecondaryStep {
     Hit,
     /// Traced no further and not a hit: it left the bound, met a non-finite value, or started
     /// within the threshold of its origin's own surface (see [`trace_secondary`]).
@@ -732,7 +742,7 @@ pub(crate) enum SecondaryStep {
     Next(f32),
 }
 
-pub(crate) fn secondary_step(step: usize, t: f32, t1: f32, fv: f32, threshold: f32) -> SecondaryStep {
+fn secondary_step(step: usize, t: f32, t1: f32, fv: f32, threshold: f32) -> SecondaryStep {
     if !fv.is_finite() {
         return SecondaryStep::Open;
     }

@@ -10,12 +10,13 @@
 //! [`SdfGrid::at`]'s operations in its order (no FMA; `min`/`max` with their operands ordered so
 //! NaN stays NaN as `clamp` keeps it; the float-to-int conversion clamped as `as i32` saturates),
 //! the position is `o + t·d` as `Rays::at`, and every lane the vector test does not prove to go
-//! on is decided by the scalar [`secondary_step`]. `render::grid`'s tests check the bits.
+//! on is decided by the scalar [`march_step`]. `render::grid`'s tests check the bits.
 
 use std::arch::x86_64::*;
+use std::ops::ControlFlow;
 
 use super::SdfGrid;
-use crate::render::{secondary_step, sphere_interval, March, Marched, Rays, SecondaryStep};
+use crate::render::{march_step, sphere_interval, March, Marched, Rays};
 
 const L: usize = 8;
 
@@ -147,47 +148,27 @@ impl Lanes {
             _mm256_and_ps(_mm256_cmp_ps::<_CMP_LT_OQ>(_mm256_and_ps(f, abs), inf), _mm256_cmp_ps::<_CMP_GE_OQ>(f, thr)),
             _mm256_and_ps(_mm256_cmp_ps::<_CMP_LE_OQ>(tn, _mm256_loadu_ps(self.t1.as_ptr())), _mm256_castsi256_ps(_mm256_cmpgt_epi32(steps, s1))),
         );
-        let on = _mm256_movemask_ps(on) as u32;
         _mm256_storeu_ps(self.fv.as_mut_ptr(), f);
-        _mm256_storeu_ps(self.t.as_mut_ptr(), tn);
+        // The lanes that go on take `tn`; the others keep the `t` they looked up at.
+        _mm256_storeu_ps(self.t.as_mut_ptr(), _mm256_blendv_ps(tv, tn, on));
         _mm256_storeu_si256(self.step.as_mut_ptr() as *mut __m256i, s1);
-        let undecided = self.active & !on;
-        if undecided != 0 {
-            // Put the undecided lanes' `t` back (the store above stepped every lane).
-            let mut tb = [0.0f32; L];
-            _mm256_storeu_ps(tb.as_mut_ptr(), tv);
-            let mut u = undecided;
-            while u != 0 {
-                let l = u.trailing_zeros() as usize;
-                u &= u - 1;
-                self.t[l] = tb[l];
-            }
-        }
-        undecided
+        self.active & !(_mm256_movemask_ps(on) as u32)
     }
 
-    /// The undecided lanes of a step, by [`secondary_step`]: a finished ray's result goes to
-    /// `out` and its lane goes idle.
+    /// The undecided lanes of a step, by [`march_step`]: a finished ray's result goes to `out`
+    /// and its lane goes idle.
     #[inline(always)]
     fn decide(&mut self, mut lanes: u32, m: &March, out: &mut [Marched]) {
         while lanes != 0 {
             let l = lanes.trailing_zeros() as usize;
             lanes &= lanes - 1;
-            let s = (self.step[l] - 1) as usize;
-            let t = self.t[l];
-            let done = match secondary_step(s, t, self.t1[l], self.fv[l], m.threshold) {
-                SecondaryStep::Hit => Some((true, t, s + 1)),
-                SecondaryStep::Open => Some((false, f32::INFINITY, s + 1)),
-                SecondaryStep::Next(tn) if s + 1 < m.steps => {
-                    self.t[l] = tn;
-                    None
+            match march_step((self.step[l] - 1) as usize, self.t[l], self.t1[l], self.fv[l], m) {
+                ControlFlow::Break(r) => {
+                    out[self.ray[l]] = r;
+                    self.ray[l] = IDLE;
+                    self.active &= !(1 << l);
                 }
-                SecondaryStep::Next(_) => Some((false, f32::INFINITY, m.steps)),
-            };
-            if let Some(r) = done {
-                out[self.ray[l]] = r;
-                self.ray[l] = IDLE;
-                self.active &= !(1 << l);
+                ControlFlow::Continue(tn) => self.t[l] = tn,
             }
         }
     }
