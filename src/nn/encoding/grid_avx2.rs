@@ -171,14 +171,33 @@ unsafe fn load_points(soa: &Soa, b: usize) -> [__m256; 3] {
     ]
 }
 
-/// Both features of every corner entry: `(table[2·idx], table[2·idx + 1])` per lane.
+/// Both features of every corner entry, lanes 0–3 then lanes 4–7, each as the four lanes' pairs
+/// `(table[2·idx], table[2·idx + 1])` in a row.
 ///
 /// Safety: every lane's `idx` is an entry of `table` (the caller checked [`suits`]).
 #[inline(always)]
+unsafe fn gather_pairs(table: &[f32], idx: __m256i) -> (__m256, __m256) {
+    let base = table.as_ptr().cast::<f64>();
+    (
+        _mm256_castpd_ps(_mm256_i32gather_pd::<8>(base, _mm256_castsi256_si128(idx))),
+        _mm256_castpd_ps(_mm256_i32gather_pd::<8>(base, _mm256_extracti128_si256::<1>(idx))),
+    )
+}
+
+/// Both features of every corner entry: `(table[2·idx], table[2·idx + 1])` per lane, split out
+/// of [`gather_pairs`] (two 64-bit gathers and four shuffles beat two 32-bit gathers).
+///
+/// Safety: as [`gather_pairs`]'.
+#[inline(always)]
 unsafe fn gather_entry(table: &[f32], idx: __m256i) -> (__m256, __m256) {
-    let i2 = _mm256_slli_epi32::<1>(idx);
-    let base = table.as_ptr();
-    (_mm256_i32gather_ps::<4>(base, i2), _mm256_i32gather_ps::<4>(base.add(1), i2))
+    let (lo, hi) = gather_pairs(table, idx);
+    // [lanes 0 1 4 5 | 2 3 6 7] of each feature, then the middle 64-bit halves swapped.
+    let f0 = _mm256_shuffle_ps::<0b10_00_10_00>(lo, hi);
+    let f1 = _mm256_shuffle_ps::<0b11_01_11_01>(lo, hi);
+    (
+        _mm256_castpd_ps(_mm256_permute4x64_pd::<0b11_01_10_00>(_mm256_castps_pd(f0))),
+        _mm256_castpd_ps(_mm256_permute4x64_pd::<0b11_01_10_00>(_mm256_castps_pd(f1))),
+    )
 }
 
 /// Column `col` of the first `m` rows (`od` wide) of `rows`, zeros past `m`.
@@ -189,13 +208,6 @@ unsafe fn load_column(rows: &[f32], od: usize, col: usize, m: usize) -> __m256 {
         *o = rows[lane * od + col];
     }
     _mm256_loadu_ps(v.as_ptr())
-}
-
-#[inline(always)]
-unsafe fn lanes(v: __m256) -> [f32; LANES] {
-    let mut a = [0.0f32; LANES];
-    _mm256_storeu_ps(a.as_mut_ptr(), v);
-    a
 }
 
 /// The forward of `super::hash_grid_forward_cpu` (f32, F = 2).
@@ -220,22 +232,27 @@ unsafe fn forward_chunk(g: &GridGeom, params: &[f32], xs: &[f32], o: &mut [f32],
     let od = g.levels.len() * 2;
     let n = xs.len() / 3;
     let soa = Soa::of(xs);
+    let dup_lo = _mm256_setr_epi32(0, 0, 1, 1, 2, 2, 3, 3);
+    let dup_hi = _mm256_setr_epi32(4, 4, 5, 5, 6, 6, 7, 7);
     for (l, lvl) in g.levels.iter().enumerate() {
         let k = LevelLanes::new(lvl, bound, inv_2b, g.table_mask);
         for b in 0..n.div_ceil(LANES) {
             let c8 = Corners8::of(&k, load_points(&soa, b));
-            let (mut s0, mut s1) = (_mm256_setzero_ps(), _mm256_setzero_ps());
+            // Each corner's two features in one 64-bit gather per four lanes (half the gathered
+            // elements of two f32 gathers), summed interleaved as the output rows hold them,
+            // with each lane's weight duplicated over its two features.
+            let (mut lo, mut hi) = (_mm256_setzero_ps(), _mm256_setzero_ps());
             for c in 0..8 {
-                let (e0, e1) = gather_entry(params, c8.idx[c]);
-                s0 = _mm256_add_ps(s0, _mm256_mul_ps(c8.w[c], e0));
-                s1 = _mm256_add_ps(s1, _mm256_mul_ps(c8.w[c], e1));
+                let (elo, ehi) = gather_pairs(params, c8.idx[c]);
+                lo = _mm256_add_ps(lo, _mm256_mul_ps(_mm256_permutevar8x32_ps(c8.w[c], dup_lo), elo));
+                hi = _mm256_add_ps(hi, _mm256_mul_ps(_mm256_permutevar8x32_ps(c8.w[c], dup_hi), ehi));
             }
-            let (s0, s1) = (lanes(s0), lanes(s1));
-            let m = (n - b * LANES).min(LANES);
-            for lane in 0..m {
+            let mut pairs = [0.0f32; 2 * LANES];
+            _mm256_storeu_ps(pairs.as_mut_ptr(), lo);
+            _mm256_storeu_ps(pairs.as_mut_ptr().add(LANES), hi);
+            for (lane, pair) in pairs.chunks_exact(2).take((n - b * LANES).min(LANES)).enumerate() {
                 let row = (b * LANES + lane) * od + l * 2;
-                o[row] = s0[lane];
-                o[row + 1] = s1[lane];
+                o[row..row + 2].copy_from_slice(pair);
             }
         }
     }
