@@ -393,7 +393,7 @@ fn uniform(rng: &mut impl rand::Rng, n: usize, bound: f32) -> Vec<f32> {
     (0..n).map(|_| rng.random_range(-bound..bound)).collect()
 }
 
-/// GFLOP/s of a plain GEMM (`[rows, 512]·[512, 512]`, matrixmultiply's packed AVX/FMA kernels)
+/// GFLOP/s of a plain GEMM (`[rows, 512]·[512, 512]`, the `gemm` crate's packed kernels)
 /// split over rayon in 1024-row chunks: the "well-vectorised GEMM" the cpu MLP is compared with.
 fn gemm_reference_gflops(rows: usize, iters: usize) -> anyhow::Result<f64> {
     let (rows, k, n, chunk) = (rows.max(1), 512usize, 512usize, 1024usize);
