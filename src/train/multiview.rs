@@ -18,7 +18,7 @@
 
 use glam::{DMat4, DVec3};
 
-use super::photo::{dot, nearest_by_direction, sub, Pixels};
+use super::photo::{dot, nearest_by_direction, solid_bits, sub, Pixels};
 use super::stage1::TrainData;
 
 /// How many of the nearest photos (by direction from the frame's centre) a reference photo is
@@ -47,6 +47,8 @@ pub struct MultiView {
     /// The photos' sRGB, filtered by [`prefilter`] (every patch, the reference's at pixel centres
     /// and the neighbours' interpolated, then shows the same blur).
     images: Vec<Vec<f32>>,
+    /// Each view's mask as [`solid_bits`].
+    solid: Vec<Vec<u64>>,
 }
 
 /// A separable [1, 2, 1]/4 filter of an RGB image (edges clamped): bilinear interpolation blurs a
@@ -77,7 +79,8 @@ impl MultiView {
         let centres: Vec<[f32; 3]> = data.views.iter().map(|v| v.camera.center().as_vec3().to_array()).collect();
         let neighbours = nearest_by_direction(&centres, NEIGHBOURS);
         let images = data.views.iter().map(|v| prefilter(&v.rgb, v.camera.width, v.camera.height)).collect();
-        Self { camera_from_world: data.views.iter().map(|v| v.camera.world_from_camera.inverse()).collect(), centres, neighbours, images }
+        let solid = data.views.iter().map(|v| solid_bits(&v.mask)).collect();
+        Self { camera_from_world: data.views.iter().map(|v| v.camera.world_from_camera.inverse()).collect(), centres, neighbours, images, solid }
     }
 
     /// Project through these poses (camera → world, one per view) from here on: the pose
@@ -100,7 +103,7 @@ impl MultiView {
     fn patch(&self, data: &TrainData, v: usize, px: [f32; 2]) -> Option<[[f32; 3]; 9]> {
         let view = &data.views[v];
         let (w, h) = (view.camera.width, view.camera.height);
-        Pixels::new(w, h, Some(&view.mask), &self.images[v], w, h, 3).patch(px)
+        Pixels::new(w, h, Some(&view.mask), &self.images[v], w, h, 3).with_solid(Some(&self.solid[v])).patch(px)
     }
 
     /// The patch cost (mean |a − b| over the patch and channels) of view `v` at point `p`

@@ -52,6 +52,22 @@ pub(crate) struct Pixels<'a> {
     stride: usize,
     /// The image channel of R, G and B (all 0 for a one-channel image).
     channels: [usize; 3],
+    /// The mask as [`solid_bits`] (where colour lookups read it instead of `mask`).
+    solid: Option<&'a [u64]>,
+}
+
+/// A mask as bits, row-major, set where a colour lookup keeps the pixel (the mask not below 0.5;
+/// NaN kept, as [`Pixels::colour_at`] reads the mask): a bit a pixel where the mask has 32. Photo
+/// consistency samples millions of patches at random places of every view, and its lookups
+/// waited on the mask's cache misses.
+pub(crate) fn solid_bits(mask: &[f32]) -> Vec<u64> {
+    let mut bits = vec![0u64; mask.len().div_ceil(64)];
+    for (i, &m) in mask.iter().enumerate() {
+        if !(m < 0.5) {
+            bits[i / 64] |= 1 << (i % 64);
+        }
+    }
+    bits
 }
 
 impl<'a> Pixels<'a> {
@@ -59,24 +75,44 @@ impl<'a> Pixels<'a> {
     /// `image_height` pixels of `stride` values.
     #[inline(always)]
     pub(crate) fn new(width: usize, height: usize, mask: Option<&'a [f32]>, data: &'a [f32], image_width: usize, image_height: usize, stride: usize) -> Self {
-        Self { width, height, mask, data, image_width, image_height, stride, channels: [0, 1, 2].map(|k: usize| k.min(stride - 1)) }
+        Self { width, height, mask, data, image_width, image_height, stride, channels: [0, 1, 2].map(|k: usize| k.min(stride - 1)), solid: None }
+    }
+
+    /// Colour lookups read the mask from `bits`, its [`solid_bits`] (the same pixels kept).
+    #[inline(always)]
+    pub(crate) fn with_solid(self, bits: Option<&'a [u64]>) -> Self {
+        Self { solid: bits, ..self }
+    }
+
+    /// The index of the pixel holding continuous pixel coordinates; None off the image.
+    #[inline(always)]
+    fn pixel(&self, px: [f32; 2]) -> Option<usize> {
+        if !(px[0] >= 0.0 && px[1] >= 0.0 && (px[0] as usize) < self.width && (px[1] as usize) < self.height) {
+            return None;
+        }
+        Some(px[1] as usize * self.width + px[0] as usize)
     }
 
     /// The mask at continuous pixel coordinates (1 without a mask, as `View::mask_at`); None off
     /// the image.
     #[inline(always)]
     pub(crate) fn mask_at(&self, px: [f32; 2]) -> Option<f32> {
-        if !(px[0] >= 0.0 && px[1] >= 0.0 && (px[0] as usize) < self.width && (px[1] as usize) < self.height) {
-            return None;
-        }
-        Some(self.mask.map_or(1.0, |m| m[px[1] as usize * self.width + px[0] as usize]))
+        let i = self.pixel(px)?;
+        Some(self.mask.map_or(1.0, |m| m[i]))
     }
 
     /// The image at continuous pixel coordinates (pixel centres at +0.5), bilinear; None off
     /// the image or where the mask is below 0.5.
     #[inline(always)]
     pub(crate) fn colour_at(&self, px: [f32; 2]) -> Option<[f32; 3]> {
-        if self.mask_at(px)? < 0.5 {
+        let kept = match (self.solid, self.mask) {
+            (Some(bits), Some(_)) => {
+                let i = self.pixel(px)?;
+                bits[i / 64] >> (i % 64) & 1 == 1
+            }
+            _ => !(self.mask_at(px)? < 0.5),
+        };
+        if !kept {
             return None;
         }
         let (w, h, c, data) = (self.image_width, self.image_height, self.stride, self.data);

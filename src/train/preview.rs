@@ -25,7 +25,7 @@ use anyhow::Context as _;
 use glam::{DMat3, DMat4, DQuat, DVec3};
 
 use super::hull::{carve, signed_distance, Grid3, MaskView};
-use super::photo::{project_colour, PhotoView, Pixels};
+use super::photo::{project_colour, solid_bits, PhotoView, Pixels};
 use crate::backend::{Backend, BackendError};
 use crate::context::Context;
 use crate::mesh::field::{Aabb, MaterialField, MaterialSamples, SdfField, SdfSamples};
@@ -86,6 +86,8 @@ pub struct ViewAdapter<'a> {
     centre: [f32; 3],
     /// The inverse of the camera's pose, formed once (carving projects millions of points).
     camera_from_world: DMat4,
+    /// The mask's [`solid_bits`], formed once (photo consistency's patches read it).
+    solid: Option<Vec<u64>>,
 }
 
 impl<'a> ViewAdapter<'a> {
@@ -96,7 +98,13 @@ impl<'a> ViewAdapter<'a> {
     /// The view's photo and mask seen through `camera` in place of its own (same size and
     /// intrinsics: a refined pose).
     pub fn posed(view: &'a View, camera: &crate::scene::Camera) -> Self {
-        Self { view, camera: camera.clone(), centre: camera.center().as_vec3().to_array(), camera_from_world: camera.world_from_camera.inverse() }
+        Self {
+            view,
+            camera: camera.clone(),
+            centre: camera.center().as_vec3().to_array(),
+            camera_from_world: camera.world_from_camera.inverse(),
+            solid: view.mask.as_deref().map(solid_bits),
+        }
     }
 }
 
@@ -118,11 +126,11 @@ impl PhotoView for ViewAdapter<'_> {
         self.centre
     }
     fn colour_at(&self, px: [f32; 2]) -> Option<[f32; 3]> {
-        pixels(self.view).colour_at(px)
+        pixels(self.view).with_solid(self.solid.as_deref()).colour_at(px)
     }
     /// The nine lookups of [`PhotoView::patch`] with the image, mask and sizes gathered once.
     fn patch(&self, px: [f32; 2]) -> Option<[[f32; 3]; 9]> {
-        pixels(self.view).patch(px)
+        pixels(self.view).with_solid(self.solid.as_deref()).patch(px)
     }
 }
 
@@ -607,8 +615,15 @@ mod tests {
             for (i, v) in image.data.iter_mut().enumerate() {
                 *v = ((i * 7919) % 1009) as f32 / 1009.0 - 0.1;
             }
-            // Foreground left of column 15, a soft 0.5 column at 15 (kept: the test is ≥ 0.5), 0.2 elsewhere.
-            let soft = |x: usize, y: usize| if y <= 2 || x > 15 { 0.2 } else if x == 15 { 0.5 } else { 1.0 };
+            // Foreground left of column 15, a soft 0.5 column at 15 (kept: the test is ≥ 0.5), 0.2
+            // elsewhere; inside, a NaN pixel (kept, as `mask < 0.5` is false) and one just under 0.5.
+            let soft = |x: usize, y: usize| match (x, y) {
+                (7, 9) => f32::NAN,
+                (8, 9) => 0.49999997,
+                _ if y <= 2 || x > 15 => 0.2,
+                (15, _) => 0.5,
+                _ => 1.0,
+            };
             let mask = masked.then(|| (0..w * h).map(|i| soft(i % w, i / w)).collect());
             let camera = crate::scene::Camera { width: w, height: h, fx: 20.0, fy: 20.0, cx: 11.5, cy: 8.5, distortion: None, world_from_camera: DMat4::IDENTITY };
             let view = View { name: "v".into(), split: Split::Train, camera, image, mask, image_path: PathBuf::new() };
@@ -622,7 +637,7 @@ mod tests {
                     if a.is_some() { some += 1 } else { none += 1 }
                     let on_image = px[0] >= 0.0 && px[1] >= 0.0 && (px[0] as usize) < w && (px[1] as usize) < h;
                     let reference = on_image.then(|| view.mask_at(px[0] as f64, px[1] as f64));
-                    assert_eq!(MaskView::mask_at(&fast, px), reference, "mask_at {px:?}");
+                    assert_eq!(MaskView::mask_at(&fast, px).map(f32::to_bits), reference.map(f32::to_bits), "mask_at {px:?}");
                 }
             }
             assert!(some > 200 && none > 200, "both outcomes exercised: {some} patches, {none} refused");
