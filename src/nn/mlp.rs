@@ -1,7 +1,8 @@
 //! Multilayer perceptrons: configuration, parameter layout, initialisers, forward and backward
 //! (parameter gradients and input gradients) on the cpu backend (generic over f32/f64, GEMMs by
-//! the `gemm` crate, one thread per call, rayon over row chunks) and on wgpu (`shaders/mlp.wgsl`: a tiled GEMM with
-//! workgroup memory plus elementwise activation / skip / bias / weight-norm kernels).
+//! the `gemm` crate, one thread per call, rayon over row chunks) and on wgpu (`shaders/mlp.wgsl`:
+//! a tiled GEMM with workgroup memory plus elementwise activation / skip / bias / weight-norm
+//! kernels).
 //!
 //! # Network
 //! Linear layers `0..=L` for `L = widths.len()` hidden layers. Layer `l` maps `u_l` (its input,
